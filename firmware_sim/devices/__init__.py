@@ -1,0 +1,1 @@
+"""Emulated devices, each speaking its protocol from docs/PROTOCOLS.md."""

@@ -1,0 +1,1 @@
+"""Physics of the simulated world: Earth, platform, table, sensors."""

@@ -1,0 +1,5 @@
+import sys
+
+from northfinder.cli import main
+
+sys.exit(main())

@@ -1,0 +1,1 @@
+"""Strapdown alignment without a turntable: swaying base (inertial frame) and GNSS-aided."""

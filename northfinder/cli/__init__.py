@@ -1,0 +1,50 @@
+"""`northfinder` command line: one module per subcommand, each with `register(subparsers)`.
+
+A subcommand's `register` adds its parser and sets `func(args) -> int`. A
+:class:`northfinder.errors.NorthfinderError` becomes one line on stderr and its exit code;
+anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# (module, subcommand) — modules are imported lazily so that a missing optional part does not
+# break the others.
+SUBCOMMANDS = ("find", "check", "replay", "align")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="northfinder", description="Find true north with a gyro.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in SUBCOMMANDS:
+        try:
+            module = importlib.import_module(f"northfinder.cli.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"northfinder.cli.{name}":
+                raise
+            continue
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from northfinder.errors import NorthfinderError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except NorthfinderError as exc:
+        print(f"northfinder: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("northfinder: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,50 @@
+"""`northfinder align --mode swaying|gnss`: strapdown alignment without a turntable.
+
+The flags common to both modes live here; each mode module (`align_swaying`, `align_gnss`)
+exposes `add_arguments(parser)` for its own flags and `run(args) -> int`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+from northfinder.errors import InputError
+
+MODES = {"swaying": "northfinder.cli.align_swaying", "gnss": "northfinder.cli.align_gnss"}
+
+
+def _mode_module(mode: str):
+    try:
+        return importlib.import_module(MODES[mode])
+    except ModuleNotFoundError as exc:
+        if exc.name == MODES[mode]:
+            return None
+        raise
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("align", help="align a strapdown IMU: on a swaying base or GNSS-aided on the move")
+    p.add_argument("--mode", choices=sorted(MODES), required=True)
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="alignment window [device s]")
+    p.add_argument("--json", metavar="PATH", help="write the result JSON here")
+    p.add_argument("--out", metavar="RUN_DIR", help="run directory for raw logs and the report")
+    p.add_argument("--config", metavar="BENCH_TOML", help="bench configuration for real hardware")
+    p.add_argument("--simulate", action="store_true", help="start firmware-sim and align on it")
+    p.add_argument("--grade", default=None, help="simulated sensor grade (nav, kvh1760, tactical-mems, consumer)")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--time-scale", type=float, default=None, metavar="K")
+    p.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
+                   help="pass a fault to firmware-sim (repeatable)")
+    for mode in MODES:
+        module = _mode_module(mode)
+        if module is not None:
+            module.add_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    module = _mode_module(args.mode)
+    if module is None:
+        raise InputError(f"align mode '{args.mode}' is not available in this build")
+    return module.run(args)

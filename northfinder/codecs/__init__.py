@@ -1,0 +1,1 @@
+"""Pure, byte-exact codecs for every device protocol in docs/PROTOCOLS.md. No I/O here."""

@@ -1,0 +1,240 @@
+"""Write tests/golden/vectors.json: byte vectors taken from ../shared/PROTOCOLS.md.
+
+This generator is a third, deliberately dumb implementation of each format, used once to
+write the golden file that both `northfinder` (drivers) and `firmware_sim` (devices) are
+tested against. The CRC here is not computed with either side's code: CRC-32/MPEG-2 is
+obtained from zlib's reflected CRC-32 by reflecting every input byte and the result and
+undoing the final xor (CRC-32/MPEG-2 = CRC-32 with refin=refout=False, xorout=0).
+
+Run: python tools/make_golden_vectors.py  (rewrites the file; the test suite checks it is
+unchanged by comparing with this script's output).
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from pathlib import Path
+
+OUT = Path(__file__).resolve().parent.parent / "tests" / "golden" / "vectors.json"
+
+
+def _reflect(value: int, width: int) -> int:
+    out = 0
+    for i in range(width):
+        if value >> i & 1:
+            out |= 1 << (width - 1 - i)
+    return out
+
+
+def crc32_mpeg2_via_zlib(data: bytes) -> int:
+    """CRC-32/MPEG-2 through zlib: reflect bytes in, reflect the register out."""
+    reflected = bytes(_reflect(b, 8) for b in data)
+    # zlib: init 0xFFFFFFFF, reflected, xorout 0xFFFFFFFF -> undo the xorout, reflect back.
+    return _reflect(zlib.crc32(reflected) ^ 0xFFFFFFFF, 32)
+
+
+def kvh_message(gyro, accel, status, seq, temp_c) -> bytes:
+    body = b"\xfe\x81\xff\x55" + struct.pack(">3f3fBBh", *gyro, *accel, status, seq, temp_c)
+    return body + struct.pack(">I", crc32_mpeg2_via_zlib(body))
+
+
+def nmea(body: str) -> str:
+    checksum = 0
+    for ch in body.encode("ascii"):
+        checksum ^= ch
+    return f"${body}*{checksum:02X}\r\n"
+
+
+def build() -> dict:
+    assert crc32_mpeg2_via_zlib(b"123456789") == 0x0376E6E7
+    kvh = [
+        {
+            "name": "three-axis gyro + accel, delta angles in rad",
+            "gyro": [1.0e-5, -2.0e-5, 3.0e-5],
+            "accel_g": [0.01, -0.02, 1.0],
+            "status": 0x77,
+            "sequence": 42,
+            "temperature_c": 25,
+        },
+        {
+            "name": "single-axis gyro (y only), accel fields zero and invalid",
+            "gyro": [0.0, 7.2921150e-8, 0.0],
+            "accel_g": [0.0, 0.0, 0.0],
+            "status": 0x02,
+            "sequence": 127,
+            "temperature_c": -5,
+        },
+        {
+            "name": "three-axis gyro only, rates in deg/s",
+            "gyro": [0.5, -0.25, 90.0],
+            "accel_g": [0.0, 0.0, 0.0],
+            "status": 0x07,
+            "sequence": 0,
+            "temperature_c": 40,
+        },
+    ]
+    for v in kvh:
+        msg = kvh_message(v["gyro"], v["accel_g"], v["status"], v["sequence"], v["temperature_c"])
+        v["hex"] = msg.hex()
+        # the float32 values actually on the wire, for exact comparisons after decoding
+        v["gyro_f32"] = list(struct.unpack(">3f", msg[4:16]))
+        v["accel_f32"] = list(struct.unpack(">3f", msg[16:28]))
+        v["crc"] = f"0x{struct.unpack('>I', msg[32:36])[0]:08X}"
+
+    smc100 = {
+        "replies": [
+            {"hex": b"1TS00000A\r\n".hex(), "address": 1, "errors": 0x0000, "state": 0x0A},
+            {"hex": b"1TS000032\r\n".hex(), "address": 1, "errors": 0x0000, "state": 0x32},
+            {"hex": b"1TS000028\r\n".hex(), "address": 1, "errors": 0x0000, "state": 0x28},
+            {"hex": b"1TS002033\r\n".hex(), "address": 1, "errors": 0x0020, "state": 0x33},
+            {"hex": b"2TS00011E\r\n".hex(), "address": 2, "errors": 0x0001, "state": 0x1E},
+            {"hex": b"1TEH\r\n".hex(), "address": 1, "error_letter": "H"},
+            {"hex": b"1TE@\r\n".hex(), "address": 1, "error_letter": "@"},
+            {"hex": b"1TP90.00010\r\n".hex(), "address": 1, "position": 90.0001},
+            {"hex": b"1TP-12.5\r\n".hex(), "address": 1, "position": -12.5},
+            {"hex": b"1SL-360\r\n".hex(), "address": 1, "soft_limit": -360.0},
+            {"hex": b"1SR360\r\n".hex(), "address": 1, "soft_limit": 360.0},
+        ],
+        "commands": [
+            {"hex": b"1PA90.000\r\n".hex(), "address": 1, "command": "PA", "value": 90.0},
+            {"hex": b"1PA90\r\n".hex(), "address": 1, "command": "PA", "value": 90.0},
+            {"hex": b"1PR-45.5\r\n".hex(), "address": 1, "command": "PR", "value": -45.5},
+            {"hex": b"1TP?\r\n".hex(), "address": 1, "command": "TP", "value": None, "query": True},
+            {"hex": b"1TP\r\n".hex(), "address": 1, "command": "TP", "value": None, "query": False},
+            {"hex": b"1OR\r\n".hex(), "address": 1, "command": "OR", "value": None, "query": False},
+            {"hex": b"12TS\r\n".hex(), "address": 12, "command": "TS", "value": None, "query": False},
+        ],
+        # A session on a freshly reset stage, as the device must answer it. `null` reply: the
+        # command sends nothing. `wait_ready` means: poll TS until the state is READY.
+        "exchange": [
+            {"send": "1TS", "reply": "1TS00000A"},
+            {"send": "1PA90", "reply": None},
+            {"send": "1TE", "reply": "1TEH"},
+            {"send": "1TE", "reply": "1TE@"},
+            {"send": "1OR", "reply": None},
+            {"send": "1TE", "reply": "1TE@"},
+            {"wait_ready": True, "state": 0x32},
+            {"send": "1PA90", "reply": None},
+            {"send": "1TE", "reply": "1TE@"},
+            {"wait_ready": True, "state": 0x33},
+            {"send": "1TP", "reply_position_near": 90.0},
+            {"send": "1XX", "reply": None},
+            {"send": "1TE", "reply": "1TEA"},
+            {"send": "1PA400", "reply": None},
+            {"send": "1TE", "reply": "1TEN"},
+        ],
+    }
+
+    node = 0x10
+    can = [
+        {"name": "NMT start node 0x10", "id": 0x000, "data": "0110"},
+        {"name": "NMT start all nodes", "id": 0x000, "data": "0100"},
+        {"name": "NMT stop node 0x10", "id": 0x000, "data": "0210"},
+        {"name": "heartbeat boot-up", "id": 0x700 + node, "data": "00", "state": 0x00},
+        {"name": "heartbeat operational", "id": 0x700 + node, "data": "05", "state": 0x05},
+        {"name": "heartbeat pre-operational", "id": 0x700 + node, "data": "7f", "state": 0x7F},
+        {
+            "name": "TPDO1 x=+1000 ug, y=-2000 ug",
+            "id": 0x180 + node,
+            "data": struct.pack("<ii", 1000, -2000).hex(),
+            "accel_x_ug": 1000,
+            "accel_y_ug": -2000,
+        },
+        {
+            "name": "TPDO2 z=1 g, 25.12 C, counter 7, xyz valid",
+            "id": 0x280 + node,
+            "data": struct.pack("<ihBB", 1_000_000, 2512, 7, 0x07).hex(),
+            "accel_z_ug": 1_000_000,
+            "temperature_centi_c": 2512,
+            "counter": 7,
+            "status": 0x07,
+        },
+        {
+            "name": "TPDO2 z=-0.5 g, -3.5 C, counter 255, over-range",
+            "id": 0x280 + node,
+            "data": struct.pack("<ihBB", -500_000, -350, 255, 0x87).hex(),
+            "accel_z_ug": -500_000,
+            "temperature_centi_c": -350,
+            "counter": 255,
+            "status": 0x87,
+        },
+        {
+            "name": "EMCY heartbeat/life guard",
+            "id": 0x080 + node,
+            "data": struct.pack("<HB5s", 0x8130, 0x01, b"\0" * 5).hex(),
+            "error_code": 0x8130,
+            "error_register": 0x01,
+        },
+    ]
+
+    def slcan_frame(can_id: int, data_hex: str) -> str:
+        data = bytes.fromhex(data_hex)
+        return f"t{can_id:03X}{len(data):d}{data.hex().upper()}\r"
+
+    slcan = {
+        "frames": [
+            {"id": f["id"], "data": f["data"], "extended": False, "line": slcan_frame(f["id"], f["data"])}
+            for f in can
+        ]
+        + [
+            {
+                "id": 0x1ABCDEF0,
+                "data": "1122334455667788",
+                "extended": True,
+                "line": "T1ABCDEF081122334455667788\r",
+            },
+            {"id": 0x123, "data": "", "extended": False, "line": "t1230\r"},
+        ],
+        "commands": [
+            {"send": "S6\r", "reply": "\r"},
+            {"send": "O\r", "reply": "\r"},
+            {"send": "C\r", "reply": "\r"},
+            {"send": "V\r", "reply": "V1013\r"},
+            {"send": "N\r", "reply": "NA123\r"},
+            {"send": "S9\r", "reply": "\x07"},
+            {"send": "Z\r", "reply": "\x07"},
+        ],
+    }
+
+    gga = "GNGGA,123519.00,4007.0380000,N,11631.0000000,E,1,12,0.8,45.400,M,-8.2,M,,"
+    rmc = "GNRMC,123519.00,A,4007.0380000,N,11631.0000000,E,10.500,84.40,221126,,,A"
+    vtg = "GNVTG,84.40,T,,M,10.500,N,19.446,K,A"
+    nmea_vectors = [
+        {"sentence": nmea(gga), "type": "GGA", "lat_deg": 40 + 7.038 / 60, "lon_deg": 116 + 31.0 / 60,
+         "alt_m": 45.4, "fix_quality": 1, "num_sv": 12},
+        {"sentence": nmea(rmc), "type": "RMC", "speed_knots": 10.5, "course_deg": 84.4},
+        {"sentence": nmea(vtg), "type": "VTG", "course_deg": 84.4, "speed_kmh": 19.446},
+        {"sentence": nmea("GNGGA,000000.00,0000.0000000,S,00000.0000000,W,0,00,99.9,0.000,M,0.0,M,,"),
+         "type": "GGA", "fix_quality": 0, "note": "no fix"},
+    ]
+    bad_nmea = [
+        nmea(gga)[:-5] + "00\r\n",  # wrong checksum
+        nmea(gga)[:30] + "\r\n",  # truncated
+        "$GNGGA,123519.00\r\n",  # no checksum at all
+    ]
+
+    return {
+        "source": "../shared/PROTOCOLS.md; generated by tools/make_golden_vectors.py",
+        "crc32_mpeg2": [
+            {"ascii": "123456789", "crc": "0x0376E6E7"},
+            {"ascii": "", "crc": f"0x{crc32_mpeg2_via_zlib(b''):08X}"},
+            {"hex": "fe81ff55", "crc": f"0x{crc32_mpeg2_via_zlib(bytes.fromhex('fe81ff55')):08X}"},
+        ],
+        "kvh_format_a": kvh,
+        "smc100": smc100,
+        "canopen": {"node_id": node, "frames": can},
+        "slcan": slcan,
+        "nmea": {"good": nmea_vectors, "bad": bad_nmea},
+    }
+
+
+def main() -> None:
+    OUT.parent.mkdir(parents=True, exist_ok=True)
+    OUT.write_text(json.dumps(build(), indent=1) + "\n")
+    print(f"wrote {OUT}")
+
+
+if __name__ == "__main__":
+    main()
