@@ -45,20 +45,17 @@ def euler_from_dcm(c_pn: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return heading, pitch, roll
 
 
-def tilt_from_pitch_roll(pitch_rad, roll_rad) -> tuple[np.ndarray, np.ndarray]:
-    """Tilt ε = arccos(cosθ·cosγ) and the platform-frame azimuth of the downhill direction.
+def tilt_and_azimuth(heading_rad, pitch_rad, roll_rad) -> tuple[np.ndarray, np.ndarray]:
+    """Tilt ε = arccos(cosθ·cosγ) and tilt azimuth (heading of the downhill direction) [rad].
 
-    The second value is the angle of the downhill direction in the p frame, measured like a
-    heading (clockwise from p-y); add the platform heading to get the tilt azimuth in n.
+    The table normal p-z leans toward the downhill side, so the tilt azimuth is the azimuth of
+    the horizontal projection of p-z in ENU: atan2(C_p^n[0,2], C_p^n[1,2]), in [0, 2π).
+    Undefined (returned as 0) for a level table.
     """
-    pitch = np.asarray(pitch_rad, dtype=float)
-    roll = np.asarray(roll_rad, dtype=float)
-    tilt = np.arccos(np.clip(np.cos(pitch) * np.cos(roll), -1.0, 1.0))
-    # up vector in p: [-cosθ·sinγ, sinθ, cosθ·cosγ]; downhill points against its horizontal part
-    up_x = -np.cos(pitch) * np.sin(roll)
-    up_y = np.sin(pitch)
-    downhill_az_p = np.mod(np.arctan2(-up_x, -up_y), 2.0 * np.pi)
-    return tilt, downhill_az_p
+    c = dcm_from_euler(heading_rad, pitch_rad, roll_rad)
+    tilt = np.arccos(np.clip(np.cos(pitch_rad) * np.cos(roll_rad), -1.0, 1.0))
+    azimuth = np.mod(np.arctan2(c[..., 0, 2], c[..., 1, 2]), 2.0 * np.pi)
+    return tilt, np.where(tilt > 0.0, azimuth, 0.0)
 
 
 def skew(v) -> np.ndarray:
