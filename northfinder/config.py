@@ -1,0 +1,293 @@
+"""Bench configuration (`bench.toml`): parsing and validation.
+
+One dataclass per table of the file. Every malformed or out-of-range value raises
+:class:`northfinder.errors.ConfigError` with one line naming the key, the value and what is
+allowed, so the CLI can print it without a traceback. See docs/bench.example.toml.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from northfinder.errors import ConfigError
+
+METHODS = ("exact", "vector", "coordinate_transform", "uncompensated", "eq11")
+ORDERS = ("sequential", "alternating")
+IMU_RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
+CAN_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
+
+
+@dataclass
+class TurntableConfig:
+    """`[turntable]`: the SMC100 rotation stage."""
+
+    port: str = ""
+    address: int = 1
+    baudrate: int = 57600
+    allow_home: bool = True
+    """Home (`OR`) when the stage is NOT REFERENCED; if false such a stage is an error."""
+
+
+@dataclass
+class ImuConfig:
+    """`[imu]`: the KVH format-A gyro/IMU."""
+
+    port: str = ""
+    rate_hz: int = 1000
+    baudrate: int = 921600
+
+
+@dataclass
+class AccelerometerConfig:
+    """`[accelerometer]`: the CANopen accelerometer node (python-can interface/channel)."""
+
+    interface: str = "slcan"
+    channel: str = ""
+    bitrate: int = 500_000
+    node_id: int = 0x10
+    rate_hz: float = 100.0
+    """The node's TPDO rate; the dwell is collected as dwell_s·rate_hz samples."""
+
+
+@dataclass
+class SiteConfig:
+    """`[site]`: where the bench stands."""
+
+    latitude_deg: float = float("nan")
+    height_m: float = 0.0
+
+
+@dataclass
+class RunConfig:
+    """`[run]`: the position plan, dwell and settle rule (device time throughout)."""
+
+    positions: int = 8
+    dwell_s: float = 30.0
+    order: str = "sequential"
+    start_deg: float = 0.0
+    settle_window_s: float = 0.2
+    """Length of one settle window of gyro-z samples [device s]."""
+    settle_min_s: float = 0.4
+    """Never start the dwell earlier than this after READY [device s]."""
+    settle_max_s: float = 10.0
+    """Start the dwell anyway (and say so in the events log) after this long [device s]."""
+    settle_ratio: float = 0.8
+    """Settled once a window's gyro-z spread is no longer below this fraction of the previous one."""
+    return_to_start: bool = True
+
+
+@dataclass
+class EstimatorConfig:
+    """`[estimator]`: which heading method gives the reported heading."""
+
+    method: str = "exact"
+
+
+@dataclass
+class BenchConfig:
+    """The whole bench.toml."""
+
+    turntable: TurntableConfig = field(default_factory=TurntableConfig)
+    imu: ImuConfig = field(default_factory=ImuConfig)
+    accelerometer: AccelerometerConfig = field(default_factory=AccelerometerConfig)
+    site: SiteConfig = field(default_factory=SiteConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    source: str = "<defaults>"
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict of every table (what goes into the run directory's config.json)."""
+        out = dataclasses.asdict(self)
+        out.pop("source")
+        return out
+
+    def validate(self) -> BenchConfig:
+        """Check every range; raise ConfigError naming the first bad key."""
+        _validate(self)
+        return self
+
+
+_SECTIONS = {
+    "turntable": TurntableConfig,
+    "imu": ImuConfig,
+    "accelerometer": AccelerometerConfig,
+    "site": SiteConfig,
+    "run": RunConfig,
+    "estimator": EstimatorConfig,
+}
+
+
+def _bad(key: str, value: Any, allowed: str, source: str) -> ConfigError:
+    return ConfigError(f"{source}: {key} = {value!r} is not allowed; {allowed}")
+
+
+def _coerce(section: str, name: str, value: Any, default: Any, source: str) -> Any:
+    key = f"[{section}] {name}"
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise _bad(key, value, "use true or false", source)
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise _bad(key, value, "use a whole number", source)
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise _bad(key, value, "use a number", source)
+        return float(value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise _bad(key, value, "use a quoted string", source)
+        return value
+    return value  # pragma: no cover - every field has a typed default
+
+
+def from_dict(data: dict[str, Any], source: str = "<dict>") -> BenchConfig:
+    """Build and validate a BenchConfig from parsed TOML; unknown tables or keys are errors."""
+    cfg = BenchConfig(source=source)
+    for section, body in data.items():
+        if section not in _SECTIONS:
+            raise ConfigError(f"{source}: unknown table [{section}]; allowed: {', '.join(_SECTIONS)}")
+        if not isinstance(body, dict):
+            raise ConfigError(f"{source}: {section} must be a table [{section}]")
+        target = getattr(cfg, section)
+        names = {f.name for f in dataclasses.fields(target)}
+        for name, value in body.items():
+            if name not in names:
+                raise ConfigError(
+                    f"{source}: unknown key [{section}] {name}; allowed: {', '.join(sorted(names))}"
+                )
+            setattr(target, name, _coerce(section, name, value, getattr(target, name), source))
+    return cfg.validate()
+
+
+def load(path: str | Path) -> BenchConfig:
+    """Read and validate a bench.toml; a missing file or a TOML syntax error names file and line."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: no such configuration file; see docs/bench.example.toml") from None
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read the configuration file ({exc.strerror})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: TOML syntax error: {exc}") from None
+    return from_dict(data, source=str(p))
+
+
+def _validate(cfg: BenchConfig) -> None:
+    s = cfg.source
+
+    def need(ok: bool, key: str, value: Any, allowed: str) -> None:
+        if not ok:
+            raise _bad(key, value, allowed, s)
+
+    t, i, a, site, r, e = cfg.turntable, cfg.imu, cfg.accelerometer, cfg.site, cfg.run, cfg.estimator
+    need(1 <= t.address <= 31, "[turntable] address", t.address, "use 1…31")
+    need(t.baudrate > 0, "[turntable] baudrate", t.baudrate, "use a positive baud rate")
+    need(
+        i.rate_hz in IMU_RATES_HZ,
+        "[imu] rate_hz",
+        i.rate_hz,
+        f"use one of {', '.join(map(str, IMU_RATES_HZ))}",
+    )
+    need(i.baudrate > 0, "[imu] baudrate", i.baudrate, "use a positive baud rate")
+    need(
+        bool(a.interface),
+        "[accelerometer] interface",
+        a.interface,
+        "name a python-can interface (slcan, socketcan, virtual, …)",
+    )
+    need(
+        a.bitrate in CAN_BITRATES,
+        "[accelerometer] bitrate",
+        a.bitrate,
+        f"use one of {', '.join(map(str, CAN_BITRATES))}",
+    )
+    need(1 <= a.node_id <= 127, "[accelerometer] node_id", a.node_id, "use 1…127")
+    need(
+        math.isfinite(a.rate_hz) and a.rate_hz > 0,
+        "[accelerometer] rate_hz",
+        a.rate_hz,
+        "use a positive rate in Hz",
+    )
+    if not math.isnan(site.latitude_deg):
+        need(
+            -89.0 <= site.latitude_deg <= 89.0,
+            "[site] latitude_deg",
+            site.latitude_deg,
+            "use −89…89 (north positive; within 1° of a pole the heading is undefined)",
+        )
+    need(
+        math.isfinite(site.height_m) and -500.0 <= site.height_m <= 10_000.0,
+        "[site] height_m",
+        site.height_m,
+        "use −500…10000 m",
+    )
+    need(r.positions >= 3, "[run] positions", r.positions, "use at least 3 positions")
+    need(r.positions <= 360, "[run] positions", r.positions, "use at most 360 positions")
+    need(
+        math.isfinite(r.dwell_s) and r.dwell_s > 0, "[run] dwell_s", r.dwell_s, "use a dwell greater than 0 s"
+    )
+    need(r.order in ORDERS, "[run] order", r.order, f"use one of {', '.join(ORDERS)}")
+    need(
+        math.isfinite(r.start_deg) and -360.0 <= r.start_deg <= 360.0,
+        "[run] start_deg",
+        r.start_deg,
+        "use −360…360",
+    )
+    need(r.settle_window_s > 0, "[run] settle_window_s", r.settle_window_s, "use a window greater than 0 s")
+    need(r.settle_min_s >= 0, "[run] settle_min_s", r.settle_min_s, "use 0 s or more")
+    need(
+        r.settle_max_s >= r.settle_min_s,
+        "[run] settle_max_s",
+        r.settle_max_s,
+        f"use at least settle_min_s = {r.settle_min_s}",
+    )
+    need(0.0 < r.settle_ratio < 1.0, "[run] settle_ratio", r.settle_ratio, "use a fraction between 0 and 1")
+    need(e.method in METHODS, "[estimator] method", e.method, f"use one of {', '.join(METHODS)}")
+
+
+def require_ports(cfg: BenchConfig) -> None:
+    """For a real-hardware run: every device must have a port, and no two the same one."""
+    if not cfg.turntable.port:
+        raise ConfigError(f"{cfg.source}: [turntable] port is missing; give the stage's serial port")
+    if not cfg.imu.port:
+        raise ConfigError(f"{cfg.source}: [imu] port is missing; give the IMU's serial port")
+    if not cfg.accelerometer.channel:
+        raise ConfigError(f"{cfg.source}: [accelerometer] channel is missing; give the CAN channel")
+    if math.isnan(cfg.site.latitude_deg):
+        raise ConfigError(f"{cfg.source}: [site] latitude_deg is missing; give the bench's latitude")
+    ports = {"[turntable] port": cfg.turntable.port, "[imu] port": cfg.imu.port}
+    if cfg.accelerometer.interface == "slcan":
+        ports["[accelerometer] channel"] = cfg.accelerometer.channel
+    seen: dict[str, str] = {}
+    for key, port in ports.items():
+        if port in seen:
+            raise ConfigError(
+                f"{cfg.source}: {key} = {port!r} is also {seen[port]}; each device needs its own port"
+            )
+        seen[port] = key
+
+
+def position_plan_deg(n: int, start_deg: float = 0.0, order: str = "sequential") -> list[float]:
+    """Table angles α_i = α_0 + (i−1)·360°/n in the visiting order.
+
+    `sequential` visits them in increasing angle; `alternating` visits 0, 180°, 90°, 270°-style
+    opposite pairs so that a linear bias drift does not alias into the cos/sin harmonic.
+    Angles stay inside the stage's default soft limits (−360°, +360°).
+    """
+    base = [start_deg + k * 360.0 / n for k in range(n)]
+    if order == "sequential":
+        return base
+    if n % 2 == 0:  # opposite pairs k, k + n/2 interleaved
+        half = n // 2
+        return [base[k + j * half] for k in range(half) for j in (0, 1)]
+    return base[0::2] + base[1::2]

@@ -1,0 +1,355 @@
+"""The measurement sequence on a turntable: reference, then per position move → READY → settle →
+dwell → encoder, then return to the start.
+
+Everything that is measured is counted in device samples (CONVENTIONS.md, "Time"): the settle
+windows, the dwell and the progress are sample counts over the devices' rates, so a simulator
+running K times faster than real time gives the same result. Host wall-clock time is used only
+for poll periods and time-outs.
+
+A first SIGINT/SIGTERM only raises a flag; the sequence checks it between device exchanges (never
+in the middle of one), stops the stage with `ST`, logs the stage's state, and raises
+:class:`Interrupted` with the positions measured so far. A second signal interrupts at once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import signal
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from northfinder.config import RunConfig, position_plan_deg
+from northfinder.constants import DPH
+from northfinder.errors import ConfigError
+from northfinder.rundir import PositionMeans, RunDir, position_means
+
+log = logging.getLogger(__name__)
+
+
+class _Turntable(Protocol):  # the parts of northfinder.drivers.turntable.Turntable used here
+    def status(self) -> Any: ...
+    def ensure_referenced(self, allow_home: bool = True) -> Any: ...
+    def move_absolute_deg(self, angle_deg: float, wait: bool = True, timeout_s: float = 120.0) -> Any: ...
+    def wait_ready(self, timeout_s: float = 120.0, poll_s: float = 0.05) -> Any: ...
+    def position_deg(self) -> float: ...
+    def stop(self) -> Any: ...
+    def soft_limits_deg(self) -> tuple[float, float]: ...
+
+
+class Interrupted(Exception):
+    """The run was stopped by a signal; `positions` holds what was measured before it."""
+
+    def __init__(self, signum: int, positions: list[PositionMeans], stage_state: str | None):
+        self.signum = signum
+        self.positions = positions
+        self.stage_state = stage_state
+        super().__init__(f"stopped by {signal.Signals(signum).name} after {len(positions)} positions")
+
+
+@dataclass
+class Progress:
+    """One progress report: where the sequence is, and the live gyro statistics of the dwell."""
+
+    position: int
+    """1-based index of the position being measured."""
+    positions: int
+    phase: str
+    """'reference', 'move', 'settle', 'dwell', 'measured', 'return'."""
+    target_deg: float = float("nan")
+    dwell_done_s: float = 0.0
+    """Device time collected so far in this position's dwell [s]."""
+    dwell_s: float = 0.0
+    gyro_mean_dph: list[float] = field(default_factory=list)
+    gyro_std_of_mean_dph: list[float] = field(default_factory=list)
+    settle_s: float = 0.0
+    means: PositionMeans | None = None
+
+
+@dataclass
+class SettleResult:
+    """How the settle criterion ended: after how much device time and whether it was met."""
+
+    settle_s: float
+    settled: bool
+    windows: int
+
+
+class StopFlag:
+    """Signal handlers that only raise a flag (the first time) so that no I/O is torn in half."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    def __bool__(self) -> bool:
+        return self.signum is not None
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        if self.signum is not None:
+            raise KeyboardInterrupt  # second signal: stop now
+        self.signum = signum
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[StopFlag]:
+        """Install SIGINT and SIGTERM handlers for the duration (main thread only)."""
+        old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            for s in old:
+                signal.signal(s, self._handler)
+            yield self
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+
+def settle_reached(z_windows: list[np.ndarray], ratio: float) -> bool:
+    """The table's ringing has died out in the gyro-z signal.
+
+    Ringing after a stop is a decaying oscillation about the z axis: the spread of gyro z over
+    successive equal windows shrinks by a constant factor per window while it rings, and stops
+    shrinking once only sensor noise is left. Settled when the last window's spread is no longer
+    below `ratio` × the previous one's and the two window means agree within 4σ of their noise.
+    """
+    if len(z_windows) < 2:
+        return False
+    a, b = z_windows[-2], z_windows[-1]
+    sa, sb = float(np.std(a)), float(np.std(b))
+    if sb < ratio * sa:
+        return False
+    noise = np.sqrt(sa**2 / a.size + sb**2 / b.size)
+    return abs(float(np.mean(b)) - float(np.mean(a))) <= 4.0 * noise + 1e-12
+
+
+class Sequencer:
+    """Runs the position plan on a turntable, an IMU and an accelerometer (drivers, opened)."""
+
+    def __init__(
+        self,
+        turntable: _Turntable,
+        imu: Any,
+        accelerometer: Any,
+        run: RunConfig,
+        *,
+        allow_home: bool = True,
+        rundir: RunDir | None = None,
+        on_progress: Callable[[Progress], None] | None = None,
+        stop_flag: StopFlag | None = None,
+        accel_rate_hz: float = 100.0,
+        chunk_s: float = 0.5,
+        poll_s: float = 0.02,
+        move_timeout_s: float = 120.0,
+    ):
+        self.turntable = turntable
+        self.imu = imu
+        self.accel = accelerometer
+        self.run_cfg = run
+        self.allow_home = allow_home
+        self.rundir = rundir
+        self.on_progress = on_progress or (lambda p: None)
+        self.stop_flag = stop_flag or StopFlag()
+        self.accel_rate_hz = float(accel_rate_hz)
+        self.chunk_s = chunk_s
+        self.poll_s = poll_s
+        self.move_timeout_s = move_timeout_s
+        self.positions: list[PositionMeans] = []
+        self._plan: list[float] = []
+
+    # -- helpers -----------------------------------------------------------------------------
+    def _event(self, event: dict[str, Any]) -> None:
+        if self.rundir is not None:
+            self.rundir.log_event(event)
+
+    def _check_stop(self) -> None:
+        if self.stop_flag:
+            state = None
+            try:
+                self.turntable.stop()
+                st = self.turntable.status()
+                state = st.state_name
+            except Exception as exc:  # noqa: BLE001 - report, then still save and exit
+                log.warning("could not stop the stage cleanly: %s", exc)
+                state = f"unknown ({exc})"
+            assert self.stop_flag.signum is not None
+            self._event(
+                {
+                    "event": "abort",
+                    "signal": signal.Signals(self.stop_flag.signum).name,
+                    "positions_measured": len(self.positions),
+                    "stage_state": state,
+                }
+            )
+            raise Interrupted(self.stop_flag.signum, list(self.positions), state)
+
+    def plan_deg(self) -> list[float]:
+        """The commanded angles, each shifted by whole turns into the stage's soft limits."""
+        lo, hi = self.turntable.soft_limits_deg()
+        plan = []
+        for a in position_plan_deg(self.run_cfg.positions, self.run_cfg.start_deg, self.run_cfg.order):
+            shifted = a
+            while shifted > hi:
+                shifted -= 360.0
+            while shifted < lo:
+                shifted += 360.0
+            if not lo <= shifted <= hi:
+                raise ConfigError(
+                    f"[run] start_deg: position {a:.3f}° cannot be planned inside the stage's "
+                    f"soft limits {lo:.3f}…{hi:.3f}°; change start_deg or the limits"
+                )
+            plan.append(shifted)
+        return plan
+
+    def _move(self, target_deg: float) -> None:
+        self.turntable.move_absolute_deg(target_deg, wait=False)
+        deadline = time.monotonic() + self.move_timeout_s
+        while True:
+            self._check_stop()
+            st = self.turntable.status()
+            if st.is_ready:
+                return
+            if st.is_disabled or st.errors or time.monotonic() > deadline:
+                # Let the driver raise its StageError naming the state and letter.
+                self.turntable.wait_ready(timeout_s=0.0)
+                return
+            time.sleep(self.poll_s)
+
+    def _read_imu(self, n: int) -> Any:
+        return self.imu.read(n, timeout_s=max(5.0, 2.0 * n / self.imu.rate_hz + 5.0))
+
+    def settle(self) -> SettleResult:
+        """Read gyro-z windows (device time) until the ringing has died out or settle_max_s."""
+        cfg = self.run_cfg
+        rate = float(self.imu.rate_hz)
+        n_win = max(2, int(round(cfg.settle_window_s * rate)))
+        max_windows = max(1, int(np.ceil(cfg.settle_max_s * rate / n_win)))
+        min_windows = int(np.ceil(cfg.settle_min_s * rate / n_win))
+        self.imu.discard_pending()
+        windows: list[np.ndarray] = []
+        for k in range(1, max_windows + 1):
+            self._check_stop()
+            block = self._read_imu(n_win)
+            windows.append(np.asarray(block.gyro_rad_s)[:, 2])
+            if k >= min_windows and settle_reached(windows[-2:], cfg.settle_ratio):
+                return SettleResult(k * n_win / rate, True, k)
+        return SettleResult(max_windows * n_win / rate, False, max_windows)
+
+    def dwell(self, index: int, target_deg: float) -> tuple[list[Any], Any]:
+        """Collect dwell_s·rate IMU samples (in chunks, reporting live statistics), then the
+        accelerometer's dwell_s·rate samples from the same interval."""
+        cfg = self.run_cfg
+        rate = float(self.imu.rate_hz)
+        n_total = max(2, int(round(cfg.dwell_s * rate)))
+        n_chunk = max(1, int(round(self.chunk_s * rate)))
+        self.imu.discard_pending()
+        self.accel.discard_pending()
+        blocks = []
+        got = 0
+        s1 = np.zeros(3)
+        s2 = np.zeros(3)
+        while got < n_total:
+            self._check_stop()
+            block = self._read_imu(min(n_chunk, n_total - got))
+            blocks.append(block)
+            g = np.asarray(block.gyro_rad_s) / DPH
+            got += g.shape[0]
+            s1 += g.sum(axis=0)
+            s2 += (g**2).sum(axis=0)
+            mean = s1 / got
+            var = np.maximum(s2 / got - mean**2, 0.0)
+            self.on_progress(
+                Progress(
+                    index + 1,
+                    len(self._plan),
+                    "dwell",
+                    target_deg,
+                    dwell_done_s=got / rate,
+                    dwell_s=cfg.dwell_s,
+                    gyro_mean_dph=mean.tolist(),
+                    gyro_std_of_mean_dph=np.sqrt(var / got).tolist(),
+                )
+            )
+        n_accel = max(2, int(round(cfg.dwell_s * float(self.accel_rate_hz))))
+        self._check_stop()
+        accel_block = self.accel.read(n_accel, timeout_s=max(5.0, 2.0 * n_accel / self.accel_rate_hz + 5.0))
+        return blocks, accel_block
+
+    # -- the sequence ------------------------------------------------------------------------
+    def run(self) -> list[PositionMeans]:
+        """Measure every position of the plan and return the per-position means."""
+        self.on_progress(Progress(0, self.run_cfg.positions, "reference"))
+        self.turntable.ensure_referenced(allow_home=self.allow_home)
+        self._check_stop()
+        self._plan = self.plan_deg()
+        n = len(self._plan)
+        for i, target in enumerate(self._plan):
+            self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
+            self._move(target)
+            self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
+            settle = self.settle()
+            blocks, accel_block = self.dwell(i, target)
+            self._check_stop()
+            angle_deg = float(self.turntable.position_deg())
+            means = self._record(i, target, angle_deg, settle, blocks, accel_block)
+            self.on_progress(
+                Progress(
+                    i + 1,
+                    n,
+                    "measured",
+                    target,
+                    dwell_done_s=self.run_cfg.dwell_s,
+                    dwell_s=self.run_cfg.dwell_s,
+                    gyro_mean_dph=means.gyro_dph,
+                    settle_s=settle.settle_s,
+                    means=means,
+                )
+            )
+        self.on_progress(Progress(n, n, "return", self._plan[0]))
+        self._move(self._plan[0])
+        self._event({"event": "end", "complete": True, "positions_measured": len(self.positions)})
+        return list(self.positions)
+
+    def _record(
+        self,
+        i: int,
+        target: float,
+        angle_deg: float,
+        settle: SettleResult,
+        blocks: list[Any],
+        accel_block: Any,
+    ) -> PositionMeans:
+        idx = np.concatenate([np.asarray(b.sample_index) for b in blocks])
+        gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0)
+        counter = np.asarray(accel_block.counter)
+        imu_lost = int(idx[-1] - idx[0] + 1 - idx.size)
+        accel_lost = int(counter[-1] - counter[0] + 1 - counter.size)
+        means = position_means(
+            angle_deg, gyro, np.asarray(accel_block.accel_g), imu_lost, accel_lost, float(self.imu.rate_hz)
+        )
+        self.positions.append(means)
+        self._event(
+            {
+                "event": "position",
+                "index": i,
+                "commanded_deg": target,
+                "table_angle_deg": angle_deg,
+                "settle": {"settle_s": settle.settle_s, "settled": settle.settled, "windows": settle.windows},
+                "imu": {
+                    "first_index": int(idx[0]),
+                    "last_index": int(idx[-1]),
+                    "samples": int(idx.size),
+                    "lost": imu_lost,
+                },
+                "accel": {
+                    "first_counter": int(counter[0]),
+                    "last_counter": int(counter[-1]),
+                    "samples": int(counter.size),
+                    "lost": accel_lost,
+                },
+                "gyro_dph": means.gyro_dph,
+                "accel_g": means.accel_g,
+            }
+        )
+        return means

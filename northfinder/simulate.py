@@ -1,0 +1,190 @@
+"""Start firmware-sim as a subprocess and wire its endpoints into a bench configuration.
+
+northfinder never imports firmware_sim: it runs `python -m firmware_sim` (the same interpreter),
+reads the one JSON line of endpoints it prints, and terminates it at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from northfinder.config import BenchConfig
+from northfinder.errors import DeviceError
+
+
+@dataclass
+class SimSettings:
+    """The truth and the knobs passed on to firmware-sim (degrees at the edge)."""
+
+    heading_deg: float = 37.0
+    pitch_deg: float = 1.5
+    roll_deg: float = -0.8
+    latitude_deg: float = 40.0
+    grade: str = "nav"
+    seed: int = 1
+    time_scale: float = 20.0
+    faults: Sequence[str] = field(default_factory=tuple)
+    config: str | None = None
+
+    def argv(self) -> list[str]:
+        """The firmware-sim command line for these settings."""
+        out = [
+            sys.executable,
+            "-m",
+            "firmware_sim",
+            "--heading",
+            repr(float(self.heading_deg)),
+            "--pitch",
+            repr(float(self.pitch_deg)),
+            "--roll",
+            repr(float(self.roll_deg)),
+            "--latitude",
+            repr(float(self.latitude_deg)),
+            "--grade",
+            self.grade,
+            "--seed",
+            str(int(self.seed)),
+            "--time-scale",
+            repr(float(self.time_scale)),
+        ]
+        if self.config:
+            out += ["--config", self.config]
+        for fault in self.faults:
+            out += ["--fault", fault]
+        return out
+
+    def truth(self) -> dict[str, float]:
+        return {
+            "heading_deg": float(self.heading_deg) % 360.0,
+            "pitch_deg": float(self.pitch_deg),
+            "roll_deg": float(self.roll_deg),
+            "latitude_deg": float(self.latitude_deg),
+        }
+
+
+class SimulatorProcess:
+    """`with SimulatorProcess(settings) as endpoints:` — firmware-sim runs for the block's duration."""
+
+    def __init__(self, settings: SimSettings, *, startup_timeout_s: float = 30.0):
+        self.settings = settings
+        self.startup_timeout_s = startup_timeout_s
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.endpoints: dict[str, Any] = {}
+
+    def start(self) -> dict[str, Any]:
+        """Start the process and return its endpoints; a clear DeviceError if it fails to start."""
+        env = dict(os.environ)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        try:
+            # Own process group: a Ctrl-C in the terminal reaches northfinder only, which then stops
+            # the stage through the simulator before it terminates it.
+            self.proc = subprocess.Popen(
+                self.settings.argv(),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                stdin=subprocess.DEVNULL,
+                env=env,
+                start_new_session=True,
+            )
+        except OSError as exc:
+            raise DeviceError("firmware-sim", None, f"cannot start it ({exc.strerror})") from None
+        line = self._read_line(self.startup_timeout_s)
+        try:
+            endpoints = json.loads(line)
+            if not isinstance(endpoints, dict) or "turntable" not in endpoints:
+                raise ValueError
+        except ValueError:
+            self.stop()
+            raise DeviceError(
+                "firmware-sim", None, f"printed {line[:120]!r} instead of its endpoints JSON"
+            ) from None
+        self.endpoints = endpoints
+        return endpoints
+
+    def _read_line(self, timeout_s: float) -> str:
+        assert self.proc is not None and self.proc.stdout is not None
+        sel = selectors.DefaultSelector()
+        sel.register(self.proc.stdout, selectors.EVENT_READ)
+        buf = b""
+        deadline = time.monotonic() + timeout_s
+        fd = self.proc.stdout.fileno()
+        try:
+            while b"\n" not in buf:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    self.stop()
+                    raise DeviceError(
+                        "firmware-sim",
+                        None,
+                        f"printed no endpoints within {timeout_s:.0f} s; is firmware_sim installed?",
+                    )
+                if not sel.select(left):
+                    continue
+                chunk = os.read(fd, 4096)
+                if not chunk:
+                    err = self._stderr_tail()
+                    self.stop()
+                    raise DeviceError("firmware-sim", None, f"exited before it was ready: {err}")
+                buf += chunk
+        finally:
+            sel.close()
+        return buf.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
+
+    def _stderr_tail(self) -> str:
+        assert self.proc is not None and self.proc.stderr is not None
+        try:
+            self.proc.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            return "(no message)"
+        lines = [ln for ln in self.proc.stderr.read().decode("utf-8", "replace").splitlines() if ln.strip()]
+        return lines[-1].strip() if lines else f"exit code {self.proc.returncode}"
+
+    def stop(self, timeout_s: float = 10.0) -> int | None:
+        """SIGTERM, wait, SIGKILL if it does not go; returns its exit code."""
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            try:
+                self.proc.send_signal(signal.SIGTERM)
+                self.proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        for pipe in (self.proc.stdout, self.proc.stderr):
+            if pipe is not None:
+                pipe.close()
+        return self.proc.returncode
+
+    def __enter__(self) -> dict[str, Any]:
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+
+def bench_config(
+    endpoints: dict[str, Any], latitude_deg: float, base: BenchConfig | None = None
+) -> BenchConfig:
+    """A BenchConfig pointing at the simulator's endpoints (everything else from `base`)."""
+    cfg = base or BenchConfig(source="--simulate")
+    cfg.source = "--simulate"
+    cfg.turntable.port = str(endpoints["turntable"])
+    cfg.imu.port = str(endpoints["imu"])
+    can = endpoints.get("can") or {}
+    cfg.accelerometer.interface = str(can.get("interface", "slcan"))
+    cfg.accelerometer.channel = str(can.get("channel", ""))
+    cfg.accelerometer.bitrate = int(can.get("bitrate", cfg.accelerometer.bitrate))
+    cfg.accelerometer.node_id = int(can.get("node_id", cfg.accelerometer.node_id))
+    if "rate_hz" in can:
+        cfg.accelerometer.rate_hz = float(can["rate_hz"])
+    cfg.site.latitude_deg = float(latitude_deg)
+    return cfg.validate()
