@@ -1,0 +1,305 @@
+"""KVH 1750/1760/1775 "format A" (docs/PROTOCOLS.md §2): bytes ⇄ values, no I/O.
+
+A message is 36 bytes, big-endian: header ``FE 81 FF 55``, gyro x/y/z and accel x/y/z as
+float32, status, a 7-bit sequence number, temperature int16 and a CRC-32/MPEG-2 of bytes 0–31.
+
+:class:`KvhDecoder` is the streaming decoder both the live driver and the replay path use, so
+the two give bit-identical arrays from the same bytes however those bytes were chunked. Per
+chunk it finds every header with numpy, checks every complete candidate's CRC at once
+(:func:`crc32_mpeg2_rows`), walks the chain of good frames (a bad CRC or garbage makes it look
+for the next header: a resync), decodes all accepted frames with one structured big-endian
+dtype, and unwraps the sequence number into a monotonic sample index (gaps = lost samples).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "FRAME_DTYPE",
+    "FRAME_SIZE",
+    "HEADER",
+    "RATES_HZ",
+    "ROT_FORMATS",
+    "ROT_UNITS",
+    "DecodedFrames",
+    "ImuStats",
+    "KvhDecoder",
+    "crc32_mpeg2",
+    "crc32_mpeg2_rows",
+    "encode_frame",
+    "encode_frames",
+    "encode_query",
+    "encode_set",
+    "find_config_replies",
+    "gyro_scale_to_rad_s",
+    "parse_config_reply",
+]
+
+HEADER = b"\xfe\x81\xff\x55"
+FRAME_SIZE = 36
+SEQUENCE_MODULO = 128
+RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
+ROT_FORMATS = ("DELTA", "RATE")
+ROT_UNITS = ("RAD", "DEG")
+
+FRAME_DTYPE = np.dtype(
+    [
+        ("header", ">u4"),
+        ("gyro", ">f4", (3,)),
+        ("accel", ">f4", (3,)),
+        ("status", "u1"),
+        ("sequence", "u1"),
+        ("temperature", ">i2"),
+        ("crc", ">u4"),
+    ]
+)
+assert FRAME_DTYPE.itemsize == FRAME_SIZE
+
+# --------------------------------------------------------------------------------------------
+# CRC-32/MPEG-2: poly 0x04C11DB7, init 0xFFFFFFFF, no reflection, no final xor.
+
+
+def _make_table() -> np.ndarray:
+    table = np.zeros(256, dtype=np.uint32)
+    for byte in range(256):
+        crc = byte << 24
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x04C11DB7) if crc & 0x80000000 else (crc << 1)
+            crc &= 0xFFFFFFFF
+        table[byte] = crc
+    return table
+
+
+CRC_TABLE = _make_table()
+_CRC_TABLE_LIST = [int(v) for v in CRC_TABLE]
+
+
+def crc32_mpeg2(data: bytes, crc: int = 0xFFFFFFFF) -> int:
+    """CRC-32/MPEG-2 of `data`, table-driven, one byte at a time (the reference version)."""
+    table = _CRC_TABLE_LIST
+    for byte in data:
+        crc = ((crc << 8) & 0xFFFFFFFF) ^ table[(crc >> 24) ^ byte]
+    return crc
+
+
+def crc32_mpeg2_rows(rows: np.ndarray) -> np.ndarray:
+    """CRC-32/MPEG-2 of every row of a uint8 [n, L] array at once → uint32 [n].
+
+    The byte loop runs over the L columns; each step is vectorized over the n rows.
+    """
+    rows = np.asarray(rows, dtype=np.uint8)
+    columns = np.ascontiguousarray(rows.T)
+    crc = np.full(rows.shape[0], 0xFFFFFFFF, dtype=np.uint32)
+    for column in columns:
+        crc = (crc << np.uint32(8)) ^ CRC_TABLE[(crc >> np.uint32(24)) ^ column]
+    return crc
+
+
+# --------------------------------------------------------------------------------------------
+# Encoding (tests, tools, and anyone who needs to emit format A)
+
+
+def encode_frames(gyro, accel, status, sequence, temperature_c) -> bytes:
+    """Many messages at once: gyro/accel [n,3], status/sequence/temperature [n] → n·36 bytes."""
+    gyro = np.atleast_2d(np.asarray(gyro, dtype=np.float64))
+    n = gyro.shape[0]
+    frames = np.zeros(n, dtype=FRAME_DTYPE)
+    frames["header"] = int.from_bytes(HEADER, "big")
+    frames["gyro"] = gyro
+    frames["accel"] = np.atleast_2d(np.asarray(accel, dtype=np.float64))
+    frames["status"] = status
+    frames["sequence"] = np.asarray(sequence) % SEQUENCE_MODULO
+    frames["temperature"] = np.rint(np.asarray(temperature_c, dtype=np.float64)).astype(np.int16)
+    raw = frames.view(np.uint8).reshape(n, FRAME_SIZE)
+    frames["crc"] = crc32_mpeg2_rows(raw[:, :32])
+    return frames.tobytes()
+
+
+def encode_frame(gyro, accel, status: int, sequence: int, temperature_c: int) -> bytes:
+    """One 36-byte message."""
+    return encode_frames([gyro], [accel], [status], [sequence], [temperature_c])
+
+
+def gyro_scale_to_rad_s(rate_hz: float, rot_format: str, rot_units: str) -> float:
+    """Factor from the gyro field to rad/s: ×rate for delta angles, ×π/180 for degrees."""
+    fmt, units = rot_format.upper(), rot_units.upper()
+    if fmt not in ROT_FORMATS or units not in ROT_UNITS:
+        raise ValueError(f"rot_format must be one of {ROT_FORMATS}, rot_units one of {ROT_UNITS}")
+    factor = float(rate_hz) if fmt == "DELTA" else 1.0
+    if units == "DEG":
+        factor *= np.pi / 180.0
+    return factor
+
+
+# --------------------------------------------------------------------------------------------
+# Configuration lines (ASCII, '\n'-terminated)
+
+
+def encode_set(key: str, value) -> bytes:
+    """``('DR', 1000)`` → ``b'=DR,1000\\n'``; ``('CONFIG', 1)`` → ``b'=CONFIG,1\\n'``."""
+    return f"={key.upper()},{value}\n".encode("ascii")
+
+
+def encode_query(key: str) -> bytes:
+    """``'DR'`` → ``b'?DR\\n'``."""
+    return f"?{key.upper()}\n".encode("ascii")
+
+
+_REPLY_RE = re.compile(rb"([A-Z]{2,8}),([0-9A-Za-z.+-]+)\r?\n")
+
+
+def parse_config_reply(line: bytes) -> tuple[str, str]:
+    """``b'DR,1000\\n'`` → ('DR', '1000'); ValueError if the line is not a KEY,VALUE reply."""
+    m = _REPLY_RE.fullmatch(line)
+    if m is None:
+        raise ValueError(f"not a KVH configuration reply: {line!r}")
+    return m.group(1).decode(), m.group(2).decode()
+
+
+def find_config_replies(data: bytes) -> list[tuple[str, str, int]]:
+    """Every ``KEY,VALUE\\n`` reply in a byte buffer → (key, value, end offset)."""
+    return [(m.group(1).decode(), m.group(2).decode(), m.end()) for m in _REPLY_RE.finditer(data)]
+
+
+# --------------------------------------------------------------------------------------------
+# Streaming decoder
+
+
+@dataclass
+class ImuStats:
+    """Counters of a KVH stream: good frames, bad CRCs, resyncs, sequence gaps and lost samples."""
+
+    frames: int = 0
+    bad_crc: int = 0
+    resyncs: int = 0
+    sequence_gaps: int = 0
+    lost_samples: int = 0
+    bytes: int = 0
+    skipped_bytes: int = 0
+    discarded_frames: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class DecodedFrames:
+    """Accepted frames of one chunk: device sample index and the raw field values."""
+
+    sample_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    frames: np.ndarray = field(default_factory=lambda: np.zeros(0, FRAME_DTYPE))
+    lost_samples: int = 0  # gaps inside this chunk (and before its first frame)
+
+    def __len__(self) -> int:
+        return len(self.sample_index)
+
+
+_HEADER_VALUES = np.frombuffer(HEADER, dtype=np.uint8)
+_OFFSETS = np.arange(FRAME_SIZE)
+
+
+def _header_positions(buf: np.ndarray) -> np.ndarray:
+    n = len(buf) - 3
+    if n <= 0:
+        return np.zeros(0, dtype=np.intp)
+    hit = buf[:n] == _HEADER_VALUES[0]
+    for k in range(1, 4):
+        hit &= buf[k : n + k] == _HEADER_VALUES[k]
+    return np.flatnonzero(hit)
+
+
+class KvhDecoder:
+    """Stateful format-A decoder: ``feed(bytes) -> DecodedFrames``; counts in ``stats``.
+
+    Its output does not depend on how the stream is cut into chunks. Definitions: a *bad CRC*
+    is a complete 36-byte candidate that starts with the header and fails the CRC; a *resync*
+    is a good frame that follows skipped bytes (garbage, a broken frame, or the middle of a
+    frame when the stream was joined late); a *sequence gap* is a jump of the 7-bit sequence
+    by more than 1, and its missing numbers are *lost samples*.
+    """
+
+    def __init__(self) -> None:
+        self.stats = ImuStats()
+        self._tail = b""
+        self._skipped_pending = False
+        self._last_sequence: int | None = None
+        self._last_index = -1
+
+    def feed(self, data: bytes) -> DecodedFrames:
+        """Decode every complete frame in the buffered bytes plus `data`."""
+        self.stats.bytes += len(data)
+        raw = self._tail + bytes(data)
+        buf = np.frombuffer(raw, dtype=np.uint8)
+        n = len(buf)
+        cand = _header_positions(buf)
+        complete = cand[cand + FRAME_SIZE <= n]
+        incomplete = cand[cand + FRAME_SIZE > n]
+        if len(complete):
+            rows = buf[complete[:, None] + _OFFSETS]
+            stored = np.ascontiguousarray(rows[:, 32:36]).view(">u4").ravel()
+            valid = crc32_mpeg2_rows(rows[:, :32]) == stored
+        else:
+            rows = np.zeros((0, FRAME_SIZE), np.uint8)
+            valid = np.zeros(0, bool)
+
+        good = complete[valid]
+        if len(good) < 2 or np.all(np.diff(good) >= FRAME_SIZE):
+            take = np.ones(len(good), bool)
+        else:  # overlapping good candidates (a header+CRC inside a frame): the greedy chain
+            take = np.zeros(len(good), bool)
+            p = 0
+            for k, pos in enumerate(good.tolist()):
+                if pos >= p:
+                    take[k] = True
+                    p = pos + FRAME_SIZE
+        accepted = good[take]
+        accepted_rows = rows[valid][take]
+
+        # bad CRCs: failing candidates not inside an accepted frame
+        bad = complete[~valid]
+        if len(bad) and len(accepted):
+            j = np.searchsorted(accepted, bad, side="right") - 1
+            inside = (j >= 0) & (bad < accepted[np.maximum(j, 0)] + FRAME_SIZE)
+            bad = bad[~inside]
+        self.stats.bad_crc += len(bad)
+
+        # skipped bytes before each accepted frame → resyncs
+        p_end = int(accepted[-1]) + FRAME_SIZE if len(accepted) else 0
+        if len(accepted):
+            prev_end = np.concatenate(([0], accepted[:-1] + FRAME_SIZE))
+            gaps = accepted - prev_end
+            skipped = gaps > 0
+            skipped[0] |= self._skipped_pending
+            self.stats.resyncs += int(np.count_nonzero(skipped))
+            self.stats.skipped_bytes += int(gaps.sum())
+            self._skipped_pending = False
+        later = incomplete[incomplete >= p_end]
+        keep_from = int(later[0]) if len(later) else max(p_end, n - 3)
+        if keep_from > p_end:
+            self.stats.skipped_bytes += keep_from - p_end
+            self._skipped_pending = True
+        self._tail = raw[keep_from:]
+
+        frames = np.ascontiguousarray(accepted_rows).view(FRAME_DTYPE).ravel()
+        return self._index(frames)
+
+    def _index(self, frames: np.ndarray) -> DecodedFrames:
+        """Unwrap the 7-bit sequence into a monotonic index; count gaps and lost samples."""
+        if len(frames) == 0:
+            return DecodedFrames()
+        seq = frames["sequence"].astype(np.int64)
+        prev = seq[0] - 1 if self._last_sequence is None else self._last_sequence
+        step = np.diff(seq, prepend=prev) % SEQUENCE_MODULO
+        step[step == 0] = SEQUENCE_MODULO  # same number again: a whole wrap went missing
+        index = self._last_index + np.cumsum(step)
+        lost = int((step - 1).sum())
+        self.stats.frames += len(frames)
+        self.stats.sequence_gaps += int(np.count_nonzero(step > 1))
+        self.stats.lost_samples += lost
+        self._last_sequence = int(seq[-1])
+        self._last_index = int(index[-1])
+        return DecodedFrames(index, frames, lost)

@@ -1,0 +1,240 @@
+"""Serial transports: open any pyserial URL and log its raw traffic in one place.
+
+A :class:`SerialTransport` wraps a pyserial object the way a pymeasure adapter does: the serial
+object is private, and the public ``write`` / ``read*`` methods are the only way bytes move,
+so they are the one place where traffic is logged. Two logs are offered, both optional:
+
+* ``raw_log`` — a binary file that receives every byte *read*, exactly as it arrived (what a
+  replay needs: the IMU's raw stream);
+* ``transcript`` — a text file with one timestamped line per write (``>``) and per read
+  (``<``), for a line protocol such as the SMC100's.
+
+Ports are pyserial URLs: a device path (``/dev/ttyUSB0``, ``/dev/pts/3``), ``socket://host:port``,
+``loop://`` or ``spy://PORT`` (pyserial's traffic tap). Local device paths are opened with
+``exclusive=True`` so that a second program (or a second driver) cannot share the port silently.
+A port that does not exist, is busy or cannot be opened raises
+:class:`northfinder.errors.DeviceError` naming the port and saying what to do.
+
+Example::
+
+    with SerialTransport("/dev/pts/3", device="turntable", baudrate=57600,
+                         transcript="stage.txt") as t:
+        t.write(b"1VE\\r\\n")
+        print(t.read_until(b"\\r\\n"))
+"""
+
+from __future__ import annotations
+
+import errno
+import io
+import threading
+import time
+from pathlib import Path
+from typing import IO, BinaryIO, TextIO
+
+import serial
+
+from northfinder.errors import DeviceError
+
+__all__ = ["SerialTransport", "is_local_path", "open_serial"]
+
+
+def is_local_path(url: str) -> bool:
+    """True for a device path (``/dev/…``, ``COM3``), False for a ``scheme://`` URL."""
+    return "://" not in url
+
+
+def _explain_open_error(device: str, url: str, exc: Exception) -> DeviceError:
+    """Turn a pyserial/OS error into one line that names the port and says what to do."""
+    text = str(exc)
+    err = getattr(exc, "errno", None)
+    if "exclusively lock" in text or err in (errno.EAGAIN, errno.EBUSY, errno.EWOULDBLOCK):
+        return DeviceError(
+            device, url, f"port {url} is busy: another program (or another driver here) has it open "
+            "— close that first"
+        )
+    if err == errno.ENOENT or "No such file" in text:
+        return DeviceError(
+            device, url, f"no such port {url} — check the path (ls /dev/tty* /dev/pts/*) or the bench config"
+        )
+    if err == errno.EACCES or "Permission denied" in text:
+        return DeviceError(
+            device, url, f"permission denied on {url} — add your user to the 'dialout' group or fix the "
+            "device permissions"
+        )
+    if "ConnectionRefused" in type(exc).__name__ or "refused" in text.lower():
+        return DeviceError(device, url, f"connection to {url} refused — is the server running on that port?")
+    return DeviceError(device, url, f"cannot open {url} ({text}) — check the port and the bench config")
+
+
+def open_serial(url: str, *, device: str, baudrate: int, timeout_s: float, **kwargs) -> serial.SerialBase:
+    """Open `url` with pyserial (exclusive for local paths); DeviceError on any failure."""
+    if not url:
+        raise DeviceError(device, None, "no port given — set it in the bench config or on the command line")
+    if is_local_path(url):
+        kwargs.setdefault("exclusive", True)
+    try:
+        return serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s, write_timeout=timeout_s,
+                                     **kwargs)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise _explain_open_error(device, url, exc) from None
+
+
+def _open_log(target, mode: str) -> tuple[IO | None, bool]:
+    """A path opens a file we own (and close); a file object is used as is."""
+    if target is None:
+        return None, False
+    if isinstance(target, (str, Path)):
+        path = Path(target)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return open(path, mode), True  # noqa: SIM115 - closed in SerialTransport.close
+    return target, False
+
+
+class SerialTransport:
+    """A pyserial port whose reads and writes are logged in one place.
+
+    `device` is the short name used in error messages ("imu", "turntable"). Reads return
+    whatever arrived (possibly fewer bytes than asked) after `timeout_s`; a pyserial error
+    while the port is open becomes a DeviceError naming the port.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        device: str,
+        baudrate: int,
+        timeout_s: float = 1.0,
+        raw_log: str | Path | BinaryIO | None = None,
+        transcript: str | Path | TextIO | None = None,
+        **serial_kwargs,
+    ) -> None:
+        self.url = url
+        self.device = device
+        self.timeout_s = timeout_s
+        self._serial = open_serial(url, device=device, baudrate=baudrate, timeout_s=timeout_s,
+                                   **serial_kwargs)
+        self._raw_log, self._own_raw = _open_log(raw_log, "ab")
+        self._transcript, self._own_transcript = _open_log(transcript, "a")
+        self._log_lock = threading.Lock()
+        self._t0 = time.monotonic()
+        self.bytes_read = 0
+        self.bytes_written = 0
+
+    # -- the one logging place -------------------------------------------------------------
+    def _log(self, direction: str, data: bytes) -> None:
+        if not data:
+            return
+        with self._log_lock:
+            if direction == "<" and self._raw_log is not None:
+                self._raw_log.write(data)
+                self._raw_log.flush()
+            if self._transcript is not None:
+                stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime())
+                frac = f"{time.time() % 1:.6f}"[1:]
+                text = data.decode("ascii", errors="backslashreplace")
+                text = text.replace("\r", "\\r").replace("\n", "\\n")
+                self._transcript.write(f"{stamp}{frac}Z {direction} {text}\n")
+                self._transcript.flush()
+
+    def note(self, text: str) -> None:
+        """Write a comment line (``#``) to the transcript, e.g. what a poll loop is waiting for."""
+        if self._transcript is not None:
+            with self._log_lock:
+                self._transcript.write(f"# {text}\n")
+                self._transcript.flush()
+
+    def _wrap(self, exc: Exception) -> DeviceError:
+        return DeviceError(self.device, self.url,
+                           f"I/O error on {self.url} ({exc}) — was the device unplugged?")
+
+    # -- public I/O ------------------------------------------------------------------------
+    def write(self, data: bytes) -> None:
+        """Send all of `data`."""
+        try:
+            self._serial.write(data)
+            self._serial.flush()
+        except (serial.SerialException, OSError) as exc:
+            raise self._wrap(exc) from None
+        self.bytes_written += len(data)
+        self._log(">", data)
+
+    def read(self, size: int) -> bytes:
+        """Up to `size` bytes, waiting at most the port timeout."""
+        try:
+            data = self._serial.read(size)
+        except (serial.SerialException, OSError, TypeError) as exc:
+            raise self._wrap(exc) from None
+        self.bytes_read += len(data)
+        self._log("<", data)
+        return data
+
+    def read_available(self, max_bytes: int = 1 << 16) -> bytes:
+        """Whatever is waiting (at least one byte if any arrives within the timeout)."""
+        try:
+            waiting = self._serial.in_waiting
+        except (serial.SerialException, OSError, TypeError) as exc:
+            raise self._wrap(exc) from None
+        return self.read(min(max(waiting, 1), max_bytes))
+
+    def read_until(self, terminator: bytes = b"\r\n", size: int | None = 256) -> bytes:
+        """Bytes up to and including `terminator`, or what came before the timeout / `size`."""
+        try:
+            data = self._serial.read_until(terminator, size)
+        except (serial.SerialException, OSError, TypeError) as exc:
+            raise self._wrap(exc) from None
+        self.bytes_read += len(data)
+        self._log("<", data)
+        return data
+
+    def reset_input_buffer(self) -> None:
+        """Drop unread input (logged: the dropped bytes are read first, so nothing is lost silently)."""
+        try:
+            waiting = self._serial.in_waiting
+        except (serial.SerialException, OSError, TypeError) as exc:
+            raise self._wrap(exc) from None
+        if waiting:
+            old = self._serial.timeout
+            self._serial.timeout = 0
+            try:
+                self.read(waiting)
+            finally:
+                self._serial.timeout = old
+
+    @property
+    def timeout(self) -> float:
+        return self._serial.timeout
+
+    @timeout.setter
+    def timeout(self, value_s: float) -> None:
+        self._serial.timeout = value_s
+
+    @property
+    def is_open(self) -> bool:
+        return bool(self._serial.is_open)
+
+    def close(self) -> None:
+        """Close the port and any log file this transport opened itself. Idempotent."""
+        try:
+            self._serial.close()
+        except (serial.SerialException, OSError):
+            pass
+        with self._log_lock:
+            for handle, own in ((self._raw_log, self._own_raw), (self._transcript, self._own_transcript)):
+                if handle is None:
+                    continue
+                try:
+                    handle.close() if own else handle.flush()
+                except (OSError, ValueError, io.UnsupportedOperation):
+                    pass
+            self._raw_log = self._transcript = None
+
+    def __enter__(self) -> SerialTransport:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"SerialTransport({self.url!r}, device={self.device!r})"
