@@ -1,0 +1,332 @@
+"""KVH 1750/1760/1775 IMU speaking "format A" (docs/PROTOCOLS.md §2) on a pty.
+
+The codec is written here from the protocol sheet: messages are packed many at a time into a
+numpy structured array (big-endian fields), and their CRC-32/MPEG-2 is computed for all of them
+at once with a byte-wise lookup table (one table step per byte position, vectorized over the
+messages). One message per sample at the configured rate in device time; the data come from
+the world's integrated truth through the sensor error models.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+from typing import Any
+
+import numpy as np
+
+from firmware_sim.devices.base import Device
+from firmware_sim.pty import PtyPort
+
+log = logging.getLogger("firmware_sim.kvh")
+
+STANDARD_GRAVITY_M_S2 = 9.80665
+"""1 g as a unit for the accel fields (docs/CONVENTIONS.md project notes)."""
+
+HEADER = b"\xfe\x81\xff\x55"
+MESSAGE_BYTES = 36
+RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
+INVALID_AFTER_RATE_CHANGE = 2
+
+GYRO_VALID = (0x01, 0x02, 0x04)
+ACCEL_VALID = (0x10, 0x20, 0x40)
+
+VARIANTS = {
+    # name: (status valid bits, has accelerometer)
+    "gyro-1axis": (0x02, False),
+    "gyro-3axis": (0x07, False),
+    "gyro-accel": (0x77, True),
+}
+DEFAULT_VARIANT = "gyro-accel"
+
+MESSAGE_DTYPE = np.dtype([
+    ("header", ">u4"),
+    ("gyro", ">f4", (3,)),
+    ("accel", ">f4", (3,)),
+    ("status", "u1"),
+    ("sequence", "u1"),
+    ("temperature", ">i2"),
+    ("crc", ">u4"),
+])
+assert MESSAGE_DTYPE.itemsize == MESSAGE_BYTES
+
+
+# ---------------------------------------------------------------------------------------------
+# CRC-32/MPEG-2: poly 0x04C11DB7, init 0xFFFFFFFF, no reflection, no final xor
+# ---------------------------------------------------------------------------------------------
+def _crc_table() -> np.ndarray:
+    crc = np.arange(256, dtype=np.uint32) << np.uint32(24)
+    for _ in range(8):
+        top = (crc & np.uint32(0x80000000)) != 0
+        crc = np.where(top, (crc << np.uint32(1)) ^ np.uint32(0x04C11DB7), crc << np.uint32(1))
+    return crc.astype(np.uint32)
+
+
+CRC_TABLE = _crc_table()
+
+
+def crc32_mpeg2_rows(rows: np.ndarray) -> np.ndarray:
+    """CRC of each row of a uint8 array [n, m], all rows at once (m table steps, not n·m)."""
+    rows = np.asarray(rows, dtype=np.uint8)
+    if rows.ndim != 2:
+        raise ValueError("rows must be a 2-D uint8 array [n_messages, n_bytes]")
+    crc = np.full(rows.shape[0], 0xFFFFFFFF, dtype=np.uint32)
+    for j in range(rows.shape[1]):
+        idx = ((crc >> np.uint32(24)) ^ rows[:, j]) & np.uint32(0xFF)
+        crc = (crc << np.uint32(8)) ^ CRC_TABLE[idx]
+    return crc
+
+
+def crc32_mpeg2(data: bytes) -> int:
+    """CRC-32/MPEG-2 of one byte string; `crc32_mpeg2(b'123456789') == 0x0376E6E7`."""
+    row = np.frombuffer(bytes(data), dtype=np.uint8).reshape(1, -1)
+    return int(crc32_mpeg2_rows(row)[0])
+
+
+# ---------------------------------------------------------------------------------------------
+# Message codec
+# ---------------------------------------------------------------------------------------------
+def pack_messages(gyro: np.ndarray, accel_g: np.ndarray, status: np.ndarray | int,
+                  sequence: np.ndarray | int, temperature_c: np.ndarray | int) -> bytes:
+    """n format-A messages (gyro [n,3] in the configured format, accel [n,3] in g) → bytes."""
+    gyro = np.atleast_2d(np.asarray(gyro, dtype=np.float64))
+    n = gyro.shape[0]
+    msg = np.zeros(n, dtype=MESSAGE_DTYPE)
+    msg["header"] = int.from_bytes(HEADER, "big")
+    msg["gyro"] = gyro
+    msg["accel"] = np.broadcast_to(np.asarray(accel_g, dtype=np.float64), (n, 3))
+    msg["status"] = status
+    msg["sequence"] = np.asarray(sequence) & 0x7F
+    msg["temperature"] = np.rint(np.asarray(temperature_c, dtype=np.float64)).astype(np.int16)
+    raw = msg.view(np.uint8).reshape(n, MESSAGE_BYTES)
+    msg["crc"] = crc32_mpeg2_rows(raw[:, :32])
+    return msg.tobytes()
+
+
+def unpack_messages(data: bytes) -> np.ndarray:
+    """Whole, aligned messages → structured array (fields as MESSAGE_DTYPE) plus 'crc_ok'."""
+    n = len(data) // MESSAGE_BYTES
+    msg = np.frombuffer(data[: n * MESSAGE_BYTES], dtype=MESSAGE_DTYPE)
+    raw = np.frombuffer(data[: n * MESSAGE_BYTES], dtype=np.uint8).reshape(n, MESSAGE_BYTES)
+    ok = crc32_mpeg2_rows(raw[:, :32]) == msg["crc"]
+    ok &= msg["header"] == int.from_bytes(HEADER, "big")
+    out = np.zeros(n, dtype=MESSAGE_DTYPE.descr + [("crc_ok", "?")])
+    for name in MESSAGE_DTYPE.names:
+        out[name] = msg[name]
+    out["crc_ok"] = ok
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The IMU
+# ---------------------------------------------------------------------------------------------
+class KvhImu(Device):
+    """A format-A IMU on a pty. Samples k = 1, 2, … cover [(k−1)/rate, k/rate] from `epoch`.
+
+    `gyro_model` / `accel_model` are the physics' error models; `make_models(rate_hz)` may be
+    given instead to rebuild them after `=DR` (the models are built for one sample rate).
+    """
+
+    name = "imu"
+
+    def __init__(self, world: Any, gyro_model: Any = None, accel_model: Any = None, *,
+                 rate_hz: int = 1000, variant: str = DEFAULT_VARIANT, rot_format: str = "DELTA",
+                 rot_units: str = "RAD", lever_arm_b_m: Any = (0.0, 0.0, 0.0), temperature_c: float = 25.0,
+                 make_models: Any = None, faults: Any = None, fault_seed: int = 0,
+                 port: PtyPort | None = None) -> None:
+        if variant not in VARIANTS:
+            raise ValueError(f"IMU variant {variant!r} unknown; use one of {', '.join(VARIANTS)}")
+        if int(rate_hz) not in RATES_HZ:
+            raise ValueError(f"IMU rate {rate_hz} Hz not allowed; use one of {RATES_HZ}")
+        self.world = world
+        self.variant = variant
+        self.valid_bits, self.has_accel = VARIANTS[variant]
+        self.rate_hz = int(rate_hz)
+        self.rot_format = rot_format.upper()
+        self.rot_units = rot_units.upper()
+        self.lever_arm_b_m = np.asarray(lever_arm_b_m, dtype=float)
+        self.temperature_c = float(temperature_c)
+        self.make_models = make_models
+        if gyro_model is None and make_models is not None:
+            gyro_model, accel_model = make_models(self.rate_hz)
+        self.gyro_model = gyro_model
+        self.accel_model = accel_model
+        self.fault_rng = np.random.default_rng(fault_seed)
+        self.crc_rate = float(getattr(faults, "imu_crc_rate", 0.0) or 0.0)
+        self.drop_rate = float(getattr(faults, "imu_drop_byte_rate", 0.0) or 0.0)
+        self.silence = getattr(faults, "imu_silence", None)
+        self.disconnect = getattr(faults, "imu_disconnect", None)
+
+        self.port = port if port is not None else PtyPort("imu")
+        self._link_dir: str | None = None
+        self._link_path: str | None = None
+        if self.disconnect is not None:  # the endpoint must outlive the pty: a symlink to it
+            self._link_dir = tempfile.mkdtemp(prefix="firmware_sim_imu_")
+            self._link_path = os.path.join(self._link_dir, "imu")
+            os.symlink(self.port.path, self._link_path)
+        self._down_until_s: float | None = None
+
+        self.config_mode = False
+        self.epoch_s = 0.0  # device time of the current sample grid's origin
+        self.emitted = 0  # samples emitted on the current grid
+        self.sequence = 0
+        self.invalid_left = 0
+        self.messages_sent = 0
+        self._rx = bytearray()
+
+    # -- Device surface ---------------------------------------------------------------------
+    def fileno(self) -> int | None:
+        return None if self.port.closed else self.port.fileno()
+
+    def endpoint(self) -> str:
+        return self._link_path or self.port.path
+
+    def close(self) -> None:
+        self.port.close()
+        if self._link_dir is not None:
+            try:
+                os.unlink(self._link_path)  # type: ignore[arg-type]
+            except OSError:
+                pass
+            try:
+                os.rmdir(self._link_dir)
+            except OSError:
+                pass
+            self._link_dir = None
+
+    def on_readable(self, t_device_s: float) -> None:
+        self._rx += self.port.read()
+        while (cut := self._rx.find(b"\n")) >= 0:
+            line = bytes(self._rx[:cut]).strip(b"\r ").decode("ascii", "replace")
+            del self._rx[: cut + 1]
+            if line:
+                self.advance(t_device_s)  # samples before the command keep the old settings
+                self.handle_line(line, t_device_s)
+        if len(self._rx) > 4096:
+            self._rx.clear()
+
+    def advance(self, t_device_s: float) -> None:
+        self._disconnect_events(t_device_s)
+        n_due = int(math.floor((t_device_s - self.epoch_s) * self.rate_hz + 1e-9)) - self.emitted
+        if n_due <= 0:
+            return
+        if self.config_mode:  # no data in configuration mode; the grid moves on
+            self.emitted += n_due
+            return
+        self._emit(n_due)
+
+    # -- configuration ------------------------------------------------------------------------
+    def handle_line(self, line: str, t: float) -> None:
+        """One ASCII configuration line (`=CONFIG,1`, `=DR,100`, `?DR`, …)."""
+        key, _, value = line[1:].partition(",")
+        key = key.strip().upper()
+        value = value.strip().upper()
+        if line.startswith("?"):
+            answer = {"DR": str(self.rate_hz), "ROTFMT": self.rot_format, "ROTUNITS": self.rot_units,
+                      "CONFIG": "1" if self.config_mode else "0"}.get(key)
+            if answer is None:
+                log.info("imu: unknown query %r ignored", line)
+                return
+            self.port.write(f"{key},{answer}\n".encode("ascii"))
+        elif line.startswith("="):
+            if key == "CONFIG" and value in ("0", "1"):
+                self.config_mode = value == "1"
+            elif key == "DR" and value.isdigit() and int(value) in RATES_HZ:
+                if int(value) != self.rate_hz:
+                    self._set_rate(int(value), t)
+            elif key == "ROTFMT" and value in ("DELTA", "RATE"):
+                self.rot_format = value
+            elif key == "ROTUNITS" and value in ("RAD", "DEG"):
+                self.rot_units = value
+            else:
+                log.info("imu: bad command %r ignored", line)
+        else:
+            log.info("imu: unknown line %r ignored", line)
+
+    def _set_rate(self, rate_hz: int, t: float) -> None:
+        # a new grid from the last emitted sample time, so no interval is skipped or doubled
+        self.epoch_s = self.epoch_s + self.emitted / self.rate_hz
+        self.emitted = 0
+        self.rate_hz = rate_hz
+        if self.make_models is not None:
+            self.gyro_model, self.accel_model = self.make_models(rate_hz)
+        self.invalid_left = INVALID_AFTER_RATE_CHANGE
+
+    # -- data ---------------------------------------------------------------------------------
+    def _emit(self, n: int) -> None:
+        dt = 1.0 / self.rate_hz
+        t0 = self.epoch_s + self.emitted * dt
+        dtheta, dv = self.world.increments(t0, n, dt, self.lever_arm_b_m)
+        if self.gyro_model is not None:
+            dtheta = self.gyro_model.apply(dtheta)
+        if self.accel_model is not None:
+            dv = self.accel_model.apply(dv)
+        self.emitted += n
+        gyro = np.asarray(dtheta, dtype=np.float64)
+        if self.rot_format == "RATE":
+            gyro = gyro / dt
+        if self.rot_units == "DEG":
+            gyro = np.degrees(gyro)
+        status = np.full(n, self.valid_bits, dtype=np.uint8)
+        if self.has_accel:
+            accel_g = np.asarray(dv, dtype=np.float64) / (dt * STANDARD_GRAVITY_M_S2)
+        else:
+            accel_g = np.zeros((n, 3))
+        if self.valid_bits == 0x02:
+            gyro = gyro * np.array([0.0, 1.0, 0.0])
+        if self.invalid_left:
+            k = min(self.invalid_left, n)
+            status[:k] = 0
+            self.invalid_left -= k
+        seq = (self.sequence + np.arange(n)) & 0x7F
+        self.sequence = (self.sequence + n) & 0x7F
+        keep = np.ones(n, dtype=bool)
+        if self.silence is not None:
+            start, duration = self.silence
+            t_end = t0 + dt * np.arange(1, n + 1)
+            keep &= ~((t_end >= start) & (t_end < start + duration))
+        if self._down_until_s is not None or self.port.closed:
+            keep[:] = False
+        if not keep.any():
+            return
+        data = pack_messages(gyro[keep], accel_g[keep], status[keep], seq[keep], self.temperature_c)
+        data = self._corrupt(data)
+        self.messages_sent += int(keep.sum())
+        self.port.write(data)
+
+    def _corrupt(self, data: bytes) -> bytes:
+        """Apply imu-crc-rate / imu-drop-byte-rate, drawing only from the fault stream."""
+        if not self.crc_rate and not self.drop_rate:
+            return data
+        n = len(data) // MESSAGE_BYTES
+        raw = np.frombuffer(data, dtype=np.uint8).reshape(n, MESSAGE_BYTES).copy()
+        if self.crc_rate:
+            bad = self.fault_rng.random(n) < self.crc_rate
+            raw[bad, 35] ^= 0x01
+        if not self.drop_rate:
+            return raw.tobytes()
+        drop = self.fault_rng.random(n) < self.drop_rate
+        which = self.fault_rng.integers(0, MESSAGE_BYTES, n)
+        mask = np.ones((n, MESSAGE_BYTES), dtype=bool)
+        mask[np.nonzero(drop)[0], which[drop]] = False
+        return raw[mask].tobytes()
+
+    def _disconnect_events(self, t: float) -> None:
+        if self.disconnect is None:
+            return
+        at_s, down_s = self.disconnect
+        if self._down_until_s is None and not self.port.closed and at_s <= t < at_s + down_s:
+            log.info("imu: port %s disconnected at t=%.3f s for %.3f s", self.port.path, t, down_s)
+            self.port.close()
+            self._down_until_s = at_s + down_s
+        elif self._down_until_s is not None and t >= self._down_until_s:
+            self._down_until_s = None
+            self.port = PtyPort("imu")
+            tmp = self._link_path + ".new"  # type: ignore[operator]
+            os.symlink(self.port.path, tmp)
+            os.replace(tmp, self._link_path)  # type: ignore[arg-type]
+            self._rx.clear()
+            self.disconnect = None  # one disconnect per run
+            log.info("imu: back at t=%.3f s on %s (link %s)", t, self.port.path, self._link_path)

@@ -1,0 +1,145 @@
+"""A pseudo-terminal a device speaks on: raw mode, non-blocking master, clients get the slave path.
+
+The simulator closes its own slave descriptor, so it can tell whether a client has the port
+open (the master polls POLLHUP when nobody does): with no client, output goes nowhere, as
+bytes sent down an unplugged cable, and a client that opens the port later gets fresh data.
+Output never blocks the loop: what the kernel does not take at once (about 12 kB on Linux)
+waits in a bounded backlog; what does not fit there is dropped and counted, as a host-side
+UART overrun loses bytes while the device keeps transmitting.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import select
+import termios
+import tty
+
+log = logging.getLogger("firmware_sim.pty")
+
+DEFAULT_BACKLOG_BYTES = 512 * 1024
+"""Bytes held for a connected but slow client before new ones are dropped (≈ 14 s of KVH data)."""
+
+
+def make_raw(fd: int) -> None:
+    """cfmakeraw: no echo, no line editing, no signals, no CR/NL translation, 8-bit bytes."""
+    attrs = termios.tcgetattr(fd)
+    attrs[0] &= ~(
+        termios.IGNBRK | termios.BRKINT | termios.PARMRK | termios.ISTRIP
+        | termios.INLCR | termios.IGNCR | termios.ICRNL | termios.IXON
+    )
+    attrs[1] &= ~termios.OPOST
+    attrs[3] &= ~(termios.ECHO | termios.ECHONL | termios.ICANON | termios.ISIG | termios.IEXTEN)
+    attrs[2] &= ~(termios.CSIZE | termios.PARENB)
+    attrs[2] |= termios.CS8
+    attrs[6][termios.VMIN] = 1
+    attrs[6][termios.VTIME] = 0
+    termios.tcsetattr(fd, termios.TCSANOW, attrs)
+
+
+class PtyPort:
+    """One pty pair. `path` is what a client opens; the device reads and writes the master."""
+
+    def __init__(self, name: str = "pty", backlog_bytes: int = DEFAULT_BACKLOG_BYTES) -> None:
+        self.name = name
+        self.backlog_bytes = int(backlog_bytes)
+        self.master_fd, slave_fd = os.openpty()
+        try:
+            make_raw(slave_fd)
+            tty.setraw(self.master_fd)
+            self.path = os.ttyname(slave_fd)
+        finally:
+            os.close(slave_fd)
+        os.set_blocking(self.master_fd, False)
+        self._poll = select.poll()
+        self._poll.register(self.master_fd, select.POLLOUT)
+        self._pending = bytearray()
+        self.bytes_written = 0
+        self.bytes_dropped = 0
+        self.bytes_read = 0
+        self.closed = False
+        log.debug("%s: opened %s", name, self.path)
+
+    def fileno(self) -> int:
+        return self.master_fd
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        """What the client sent, without blocking (b'' if nothing waits)."""
+        if self.closed:
+            return b""
+        try:
+            data = os.read(self.master_fd, max_bytes)
+        except BlockingIOError:
+            return b""
+        except OSError as exc:
+            if exc.errno == errno.EIO:  # no client has the slave open
+                return b""
+            raise
+        self.bytes_read += len(data)
+        if data:
+            log.debug("%s <- %r", self.name, data[:200])
+        return data
+
+    @property
+    def connected(self) -> bool:
+        """True while some client has the slave open."""
+        if self.closed:
+            return False
+        return not any(ev & select.POLLHUP for _, ev in self._poll.poll(0))
+
+    def write(self, data: bytes) -> None:
+        """Queue bytes for the client and push what the kernel takes now; overflow is dropped."""
+        if self.closed or not data:
+            return
+        if not self.connected:
+            self.bytes_dropped += len(data) + len(self._pending)
+            self._pending.clear()
+            return
+        room = self.backlog_bytes - len(self._pending)
+        if len(data) > room:
+            self.bytes_dropped += len(data) - max(room, 0)
+            data = data[: max(room, 0)]
+        self._pending += data
+        self.flush()
+
+    def flush(self) -> None:
+        """Push pending bytes into the pty until the kernel refuses more."""
+        while self._pending and not self.closed:
+            try:
+                n = os.write(self.master_fd, self._pending)
+            except BlockingIOError:
+                return
+            except OSError as exc:
+                if exc.errno in (errno.EIO, errno.EAGAIN):
+                    return
+                raise
+            if n <= 0:
+                return
+            self.bytes_written += n
+            del self._pending[:n]
+
+    @property
+    def pending(self) -> int:
+        """Bytes waiting in the backlog for the client to read."""
+        return len(self._pending)
+
+    def close(self) -> None:
+        """Close both ends; a connected client sees the port vanish. Idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        self._pending.clear()
+        try:
+            os.close(self.master_fd)
+        except OSError:
+            pass
+        log.debug("%s: closed %s (written %d, dropped %d)", self.name, self.path,
+                  self.bytes_written, self.bytes_dropped)
+
+    def __enter__(self) -> PtyPort:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
