@@ -93,7 +93,9 @@ def check_conditioning(a_matrix: np.ndarray, weights: np.ndarray, what: str) -> 
     aw = a_matrix * np.sqrt(weights)[:, None]
     norms = np.linalg.norm(aw, axis=0)
     if np.any(norms == 0.0):
-        raise InputError(f"{what}: the table angles cannot separate cos α and sin α; spread the positions over the circle")
+        raise InputError(
+            f"{what}: the table angles cannot separate cos α and sin α; spread the positions over the circle"
+        )
     cond = float(np.linalg.cond(aw / norms))
     if not np.isfinite(cond) or cond > MAX_CONDITION:
         raise InputError(
@@ -131,7 +133,9 @@ def fit_harmonic(
     a_mat, names = design_matrix(alpha_rad, axes, time_s, order)
     m, p = a_mat.shape
     if m <= p - 1 or n < 3 + order:
-        raise InputError(f"{what}: {n} positions are too few for the '{bias_model}' bias model (need ≥ {3 + order})")
+        raise InputError(
+            f"{what}: {n} positions are too few for the '{bias_model}' bias model (need ≥ {3 + order})"
+        )
     if std is not None:
         sd = np.broadcast_to(np.asarray(std, dtype=float), (n, k))
         if not np.all(np.isfinite(sd)) or np.any(sd <= 0.0):

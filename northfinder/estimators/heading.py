@@ -115,7 +115,9 @@ def _as_batch(x, n: int, name: str) -> tuple[np.ndarray, bool]:
     elif arr.ndim >= 1 and arr.shape[-1] == n:
         three, arr = False, arr.reshape((-1, n, 1))
     else:
-        raise InputError(f"{name}: shape {np.shape(x)} does not match {n} table angles; expected ({n},) or ({n}, 3)")
+        raise InputError(
+            f"{name}: shape {np.shape(x)} does not match {n} table angles; expected ({n},) or ({n}, 3)"
+        )
     if not np.all(np.isfinite(arr)):
         raise InputError(f"{name}: contains NaN or inf; drop or re-measure those positions")
     return arr, three
@@ -156,7 +158,9 @@ def _heading_std_rad(method, params, cov, has_fz, g_local_g, omega_h) -> np.ndar
         lo[..., j] -= steps[j]
         args_hi = [hi[..., i] for i in range(4)] + [hi[..., 4] if has_fz else None]
         args_lo = [lo[..., i] for i in range(4)] + [lo[..., 4] if has_fz else None]
-        d = _heading_rad(method, *args_hi, g_local_g, omega_h) - _heading_rad(method, *args_lo, g_local_g, omega_h)
+        d = _heading_rad(method, *args_hi, g_local_g, omega_h) - _heading_rad(
+            method, *args_lo, g_local_g, omega_h
+        )
         jac[..., j] = (np.mod(d + np.pi, 2.0 * np.pi) - np.pi) / (2.0 * steps[j])
     return np.sqrt(np.einsum("...i,...ij,...j->...", jac, cov[..., :k, :k], jac))
 
@@ -213,7 +217,8 @@ def solve_batch(
     )  # fmt: skip
     accel_fit = fit_harmonic(
         alpha, accel[..., :2] if accel3 else accel, ("x", "y") if accel3 else ("y",),
-        std=_std_for(accel_std_g, n, accel3, "accel_std_g"), sample_count=sample_count, what="accelerometer fit",
+        std=_std_for(accel_std_g, n, accel3, "accel_std_g"), sample_count=sample_count,
+        what="accelerometer fit",
     )  # fmt: skip
 
     g_local_g = float(normal_gravity_m_s2(lat, height_m)) / STANDARD_GRAVITY_M_S2
@@ -234,8 +239,8 @@ def solve_batch(
         if np.any(bad):
             m = float(mag[np.argmax(bad)])
             raise InputError(
-                f"accel_g: |f| = {m:.4g} g is far from the local gravity {g_local_g:.5f} g (tolerance "
-                f"{accel_tolerance:.0%}); pass the accelerometer means in g, not m/s², and keep the base still"
+                f"accel_g: |f| = {m:.4g} g is far from the local gravity {g_local_g:.5f} g ("
+                f"{accel_tolerance:.0%}); pass accelerometer means in g (not m/s²) and keep the base still"
             )
         if np.any(fz <= 0.0):
             raise InputError("accel_g: the z axis reads negative gravity; mount the instrument z-up")

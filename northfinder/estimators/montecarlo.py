@@ -106,7 +106,9 @@ def interleaved_order(n: int) -> np.ndarray:
 
 def true_means(table_angle_deg, heading_deg, pitch_deg, roll_deg, latitude_deg, height_m=0.0):
     """Noise-free b-frame means: (T, n, 3) gyro [rad/s] and specific force [g] (broadcast truths)."""
-    c_pn = dcm_from_euler(*(np.deg2rad(np.atleast_1d(x).astype(float)) for x in (heading_deg, pitch_deg, roll_deg)))
+    c_pn = dcm_from_euler(
+        *(np.deg2rad(np.atleast_1d(x).astype(float)) for x in (heading_deg, pitch_deg, roll_deg))
+    )
     c_np = np.swapaxes(c_pn, -1, -2)
     w_p = c_np @ earth_rate_enu_rad_s(latitude_deg)
     g_g = float(normal_gravity_m_s2(latitude_deg, height_m)) / STANDARD_GRAVITY_M_S2
