@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from northfinder.constants import DPH, wrap_deg_180, wrap_deg_360
-from northfinder.errors import InputError, NorthfinderError
+from northfinder.constants import DPH, wrap_deg_180
+from northfinder.errors import InputError
 
 IMU_RAW = "imu.raw"
 CAN_LOG = "can.asc"
@@ -37,8 +37,6 @@ EVENTS = "events.jsonl"
 CONFIG = "config.json"
 RESULT = "result.json"
 REPORT = "report.png"
-
-METHOD_NAMES = ("exact", "vector", "coordinate_transform", "uncompensated", "eq11")
 
 
 @dataclass
@@ -100,16 +98,27 @@ def position_means(
     )
 
 
-def _solve(positions: Sequence[PositionMeans], latitude_deg: float, method: str):
+def _solve(positions: Sequence[PositionMeans], latitude_deg: float, method: str, height_m: float = 0.0):
     from northfinder.estimators.heading import solve_heading
 
     alpha = np.array([p.table_angle_deg for p in positions])
     gyro = np.array([p.gyro_dph for p in positions])
     accel = np.array([p.accel_g for p in positions])
-    # σ of each position's gyro mean from its own spread (white noise over the dwell).
-    counts = np.array([max(p.samples, 1) for p in positions], dtype=float)
-    std_of_mean = np.array([p.gyro_std_dph for p in positions]) / np.sqrt(counts)[:, None]
-    return solve_heading(alpha, gyro, accel, latitude_deg, method=method, gyro_std_dph=std_of_mean)
+    # Standard error of each position's mean from its own spread (white noise over the dwell).
+    n_gyro = np.array([max(p.samples, 1) for p in positions], dtype=float)[:, None]
+    n_accel = np.array([max(p.accel_samples, 1) for p in positions], dtype=float)[:, None]
+    gyro_se = np.array([p.gyro_std_dph for p in positions]) / np.sqrt(n_gyro)
+    accel_se = np.array([p.accel_std_g for p in positions]) / np.sqrt(n_accel)
+    return solve_heading(
+        alpha,
+        gyro,
+        accel,
+        latitude_deg,
+        method=method,
+        gyro_std_dph=gyro_se,
+        accel_std_g=accel_se,
+        height_m=height_m,
+    )
 
 
 def compute_result(
@@ -117,27 +126,16 @@ def compute_result(
     latitude_deg: float,
     method: str = "exact",
     *,
+    height_m: float = 0.0,
     truth: dict[str, float] | None = None,
     complete: bool = True,
     positions_planned: int | None = None,
-    extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The result dict (docs/result-schema.md) from per-position means: every method's heading,
     the tilt, the per-position data, and the error against the truth for a simulated run."""
     if len(positions) < 3:
         raise InputError(f"only {len(positions)} positions measured; a heading needs at least 3")
-    sol = _solve(positions, latitude_deg, method)
-    methods: dict[str, Any] = {}
-    for name in METHOD_NAMES:
-        try:
-            other = sol if name == method else _solve(positions, latitude_deg, name)
-            methods[name] = {
-                "heading_deg": float(other.heading_deg),
-                "heading_std_deg": _float_or_none(getattr(other, "heading_std_deg", None)),
-            }
-        except NorthfinderError as exc:
-            methods[name] = {"heading_deg": None, "heading_std_deg": None, "error": str(exc)}
-    tilt_deg, tilt_az_deg = _tilt(sol)
+    sol = _solve(positions, latitude_deg, method, height_m)
     result: dict[str, Any] = {
         "schema": "northfinder.result/1",
         "complete": bool(complete),
@@ -146,41 +144,29 @@ def compute_result(
         "method": method,
         "heading_deg": float(sol.heading_deg),
         "heading_std_deg": float(sol.heading_std_deg),
-        "methods": methods,
+        "methods": {name: {"heading_deg": float(h)} for name, h in sol.methods.items()},
         "tilt": {
             "pitch_deg": float(sol.pitch_deg),
             "roll_deg": float(sol.roll_deg),
-            "tilt_deg": tilt_deg,
-            "tilt_azimuth_deg": tilt_az_deg,
+            "tilt_deg": float(sol.tilt_deg),
+            "tilt_azimuth_deg": float(sol.tilt_azimuth_deg),
         },
         "latitude_deg": float(latitude_deg),
+        "height_m": float(height_m),
         "duration_device_s": float(sum(p.duration_device_s for p in positions)),
+        "fit": {
+            "gyro_residual_rms_dph": sol.gyro_residual_rms_dph,
+            "accel_residual_rms_g": sol.accel_residual_rms_g,
+            "accel_magnitude_g": float(sol.accel_magnitude_g),
+            "noise": sol.gyro_fit.noise,
+        },
         "positions": [asdict(p) for p in positions],
     }
     if truth is not None:
         keys = ("heading_deg", "pitch_deg", "roll_deg", "latitude_deg")
         result["truth"] = {k: float(truth[k]) for k in keys}
         result["error_deg"] = float(wrap_deg_180(result["heading_deg"] - truth["heading_deg"]))
-    if extra:
-        result.update(extra)
     return result
-
-
-def _float_or_none(x: Any) -> float | None:
-    return None if x is None else float(x)
-
-
-def _tilt(sol: Any) -> tuple[float, float]:
-    """Tilt and tilt azimuth [deg] from the solution (or from heading, pitch, roll if absent)."""
-    tilt = getattr(sol, "tilt_deg", None)
-    az = getattr(sol, "tilt_azimuth_deg", None)
-    if tilt is None or az is None:
-        from northfinder.rotations import tilt_and_azimuth
-
-        hpr = np.deg2rad([sol.heading_deg, sol.pitch_deg, sol.roll_deg])
-        t, a = tilt_and_azimuth(*hpr)
-        tilt, az = float(np.rad2deg(t)), float(np.rad2deg(a))
-    return float(tilt), float(wrap_deg_360(az))
 
 
 class RunDir:
@@ -335,6 +321,7 @@ def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
             positions,
             start["latitude_deg"],
             method or start.get("method", "exact"),
+            height_m=start.get("height_m", 0.0),
             truth=start.get("truth"),
             complete=complete,
             positions_planned=planned,

@@ -306,8 +306,9 @@ class Sequencer:
                     means=means,
                 )
             )
-        self.on_progress(Progress(n, n, "return", self._plan[0]))
-        self._move(self._plan[0])
+        if self.run_cfg.return_to_start:
+            self.on_progress(Progress(n, n, "return", self._plan[0]))
+            self._move(self._plan[0])
         self._event({"event": "end", "complete": True, "positions_measured": len(self.positions)})
         return list(self.positions)
 

@@ -1,0 +1,103 @@
+"""`northfinder check --config bench.toml`: probe each device and say what answered.
+
+One line per device: the stage's version and state, the IMU's rate and format (and that data
+flows), the accelerometer's heartbeat state; one clear line for each device that did not answer.
+Exit 0 only if every device answered.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+
+from northfinder import config as bench
+from northfinder.errors import ConfigError, DeviceError, NorthfinderError
+
+HEARTBEAT_STATES = {0x00: "boot-up", 0x04: "stopped", 0x05: "operational", 0x7F: "pre-operational"}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "check", help="probe the turntable, the IMU and the accelerometer of a bench", description=__doc__
+    )
+    p.add_argument("--config", metavar="BENCH_TOML", required=True, help="bench configuration")
+    p.set_defaults(func=run)
+
+
+def probe_turntable(cfg: bench.BenchConfig) -> str:
+    from northfinder.drivers.turntable import Turntable
+
+    t = cfg.turntable
+    with Turntable(t.port, address=t.address, baudrate=t.baudrate) as tt:
+        version = tt.version()
+        st = tt.status()
+        errors = ", ".join(st.error_names) if st.errors else "no errors"
+        return f"turntable on {t.port}: {version}; state {st.state_name} (0x{st.state:02X}), {errors}"
+
+
+def probe_imu(cfg: bench.BenchConfig) -> str:
+    from northfinder.drivers.imu import Imu
+
+    i = cfg.imu
+    with Imu(i.port, baudrate=i.baudrate) as imu:
+        rate = imu.query("DR")
+        fmt = imu.query("ROTFMT")
+        units = imu.query("ROTUNITS")
+        block = imu.read(max(2, int(imu.rate_hz // 10)), timeout_s=3.0)
+        stats = imu.stats
+        return (
+            f"imu on {i.port}: {rate} Hz, format A, {fmt} {units}; {len(block.sample_index)} samples read, "
+            f"{stats.bad_crc} bad CRC, {stats.lost_samples} lost"
+        )
+
+
+def probe_accelerometer(cfg: bench.BenchConfig) -> str:
+    from northfinder.drivers.accelerometer import Accelerometer
+
+    a = cfg.accelerometer
+    with Accelerometer(a.interface, a.channel, bitrate=a.bitrate, node_id=a.node_id) as acc:
+        state = acc.wait_heartbeat(timeout_s=3.0)
+        name = HEARTBEAT_STATES.get(state, f"unknown 0x{state:02X}")
+        return (
+            f"accelerometer node 0x{a.node_id:02X} on {a.interface} {a.channel}: heartbeat {name} "
+            f"(0x{state:02X})"
+        )
+
+
+def _probe(
+    what: str, port: str, fn: Callable[[bench.BenchConfig], str], cfg: bench.BenchConfig
+) -> tuple[bool, str]:
+    if not port:
+        return False, f"{what}: no port in {cfg.source}; set it and run check again"
+    import can
+
+    try:
+        return True, fn(cfg)
+    except NorthfinderError as exc:
+        return False, str(exc)
+    except (OSError, can.CanError) as exc:
+        return False, f"{what} on {port}: cannot open it ({exc}); check the port in {cfg.source}"
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = bench.load(args.config)
+    ports = [p for p in (cfg.turntable.port, cfg.imu.port) if p]
+    if len(set(ports)) < len(ports):
+        raise ConfigError(
+            f"{cfg.source}: [turntable] port and [imu] port are both {ports[0]!r}; "
+            "each device needs its own port"
+        )
+    results = [
+        _probe("turntable", cfg.turntable.port, probe_turntable, cfg),
+        _probe("imu", cfg.imu.port, probe_imu, cfg),
+        _probe("accelerometer", cfg.accelerometer.channel, probe_accelerometer, cfg),
+    ]
+    for ok, line in results:
+        print(("ok    " if ok else "FAIL  ") + line)
+    if math.isnan(cfg.site.latitude_deg):
+        print(f"note  [site] latitude_deg is not set in {cfg.source}; `find` needs it")
+    failed = sum(not ok for ok, _ in results)
+    if failed:
+        raise DeviceError(f"{failed} of {len(results)} devices", None, "did not answer (see above)")
+    return 0

@@ -1,0 +1,459 @@
+"""`northfinder find`: measure at n table positions and report true north with its uncertainty.
+
+`--config bench.toml` drives real hardware (or an externally started firmware-sim);
+`--simulate` starts firmware-sim as a subprocess, passes the truth and the knobs on, and
+reports the error against the truth. Every run leaves a run directory (northfinder.rundir).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import sys
+import time
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from northfinder import config as bench
+from northfinder.errors import DeviceError, InputError, RunAborted
+from northfinder.rundir import CONFIG, RESULT, RunDir, compute_result
+from northfinder.sequencer import Interrupted, Progress, Sequencer, StopFlag
+from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
+
+DEFAULT_TIME_SCALE = 20.0
+"""--simulate's default device-time speed-up (see docs/result-schema.md for the measurement)."""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "find", help="find true north on a turntable (real bench or --simulate)", description=__doc__
+    )
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument(
+        "--config", metavar="BENCH_TOML", help="bench configuration (real hardware or firmware-sim)"
+    )
+    src.add_argument(
+        "--simulate", action="store_true", help="start firmware-sim as a subprocess and run on it"
+    )
+    p.add_argument("--positions", type=int, metavar="N", help="number of table positions (≥ 3)")
+    p.add_argument("--dwell", type=float, metavar="S", help="dwell per position [device s]")
+    p.add_argument("--order", choices=bench.ORDERS, help="position order")
+    p.add_argument("--method", choices=bench.METHODS, help="heading method reported as the result")
+    p.add_argument("--json", metavar="PATH", help="also write the result JSON here")
+    p.add_argument("--out", metavar="RUN_DIR", help="run directory (default: runs/find-<UTC time>)")
+    p.add_argument("--no-report", action="store_true", help="skip report.png")
+    sim = p.add_argument_group("simulation (with --simulate; passed on to firmware-sim)")
+    d = SimSettings()
+    sim.add_argument("--heading", type=float, default=d.heading_deg, metavar="DEG", help="true heading")
+    sim.add_argument("--pitch", type=float, default=d.pitch_deg, metavar="DEG", help="true pitch")
+    sim.add_argument("--roll", type=float, default=d.roll_deg, metavar="DEG", help="true roll")
+    sim.add_argument(
+        "--latitude",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help=f"site latitude (default {d.latitude_deg} simulated; overrides [site] with --config)",
+    )
+    sim.add_argument("--grade", default=d.grade, help="sensor grade: nav, kvh1760, tactical-mems, consumer")
+    sim.add_argument("--seed", type=int, default=d.seed)
+    sim.add_argument(
+        "--time-scale",
+        type=float,
+        default=DEFAULT_TIME_SCALE,
+        metavar="K",
+        help="device time runs K times faster than the wall clock",
+    )
+    sim.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE", help="firmware-sim fault")
+    sim.add_argument("--sim-config", metavar="FILE_TOML", help="firmware-sim's own --config file")
+    p.set_defaults(func=run)
+
+
+def _check_flags(args: argparse.Namespace) -> None:
+    if args.positions is not None and args.positions < 3:
+        raise InputError(f"--positions {args.positions}: use at least 3 positions")
+    if args.dwell is not None and not (math.isfinite(args.dwell) and args.dwell > 0):
+        raise InputError(f"--dwell {args.dwell:g}: use a dwell greater than 0 s")
+    if args.latitude is not None and not -89.0 <= args.latitude <= 89.0:
+        raise InputError(f"--latitude {args.latitude:g}: use −89…89 degrees")
+    if args.simulate and not (math.isfinite(args.time_scale) and args.time_scale > 0):
+        raise InputError(f"--time-scale {args.time_scale:g}: use a factor greater than 0")
+
+
+def _apply_overrides(cfg: bench.BenchConfig, args: argparse.Namespace) -> bench.BenchConfig:
+    if args.positions is not None:
+        cfg.run.positions = args.positions
+    if args.dwell is not None:
+        cfg.run.dwell_s = args.dwell
+    if args.order is not None:
+        cfg.run.order = args.order
+    if args.method is not None:
+        cfg.estimator.method = args.method
+    if args.latitude is not None:
+        cfg.site.latitude_deg = args.latitude
+    return cfg.validate()
+
+
+@contextlib.contextmanager
+def open_bench(cfg: bench.BenchConfig, rundir: RunDir | None) -> Iterator[tuple[Any, Any, Any]]:
+    """Open the turntable, the IMU and the accelerometer with their logs in the run directory."""
+    from northfinder.drivers.accelerometer import Accelerometer
+    from northfinder.drivers.imu import Imu
+    from northfinder.drivers.turntable import Turntable
+
+    with contextlib.ExitStack() as stack:
+        tt = stack.enter_context(
+            _guard(
+                "turntable",
+                cfg.turntable.port,
+                lambda: Turntable(
+                    cfg.turntable.port,
+                    address=cfg.turntable.address,
+                    baudrate=cfg.turntable.baudrate,
+                    transcript=rundir.transcript_path if rundir else None,
+                ),
+            )
+        )
+        imu = stack.enter_context(
+            _guard(
+                "imu",
+                cfg.imu.port,
+                lambda: Imu(
+                    cfg.imu.port, baudrate=cfg.imu.baudrate, raw_log=rundir.imu_raw_path if rundir else None
+                ),
+            )
+        )
+        acc = stack.enter_context(
+            _guard(
+                "accelerometer",
+                cfg.accelerometer.channel,
+                lambda: Accelerometer(
+                    cfg.accelerometer.interface,
+                    cfg.accelerometer.channel,
+                    bitrate=cfg.accelerometer.bitrate,
+                    node_id=cfg.accelerometer.node_id,
+                    log_path=rundir.can_log_path if rundir else None,
+                ),
+            )
+        )
+        yield tt, imu, acc
+
+
+@contextlib.contextmanager
+def _guard(device: str, port: str, factory: Any) -> Iterator[Any]:
+    """Enter a driver; a low-level OS/serial/CAN failure becomes one DeviceError line naming the port."""
+    import can
+
+    try:
+        obj = factory()
+        entered = obj.__enter__()
+    except (OSError, can.CanError) as exc:  # serial.SerialException is an OSError
+        raise DeviceError(device, port, f"cannot open it ({exc}); check the port in bench.toml") from None
+    try:
+        yield entered
+    finally:
+        obj.__exit__(*sys.exc_info())
+
+
+def default_out() -> Path:
+    return Path("runs") / datetime.now(UTC).strftime("find-%Y%m%dT%H%M%SZ")
+
+
+class _ProgressView:
+    """rich live progress: position k of n, dwell in device time, live gyro mean and σ."""
+
+    def __init__(self, n: int, dwell_s: float, enabled: bool):
+        from rich.console import Console
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.console = Console(stderr=True)
+        self.enabled = enabled
+        self.progress = Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TextColumn("{task.fields[info]}"),
+            TimeElapsedColumn(),
+            console=self.console,
+            transient=False,
+            disable=not enabled,
+        )
+        self.pos_task = self.progress.add_task("positions", total=n, info="referencing the stage")
+        self.dwell_task = self.progress.add_task("dwell", total=dwell_s, info="")
+
+    def __call__(self, p: Progress) -> None:
+        if p.phase in ("move", "settle", "return", "reference"):
+            what = {
+                "move": f"moving to {p.target_deg:.1f}°",
+                "settle": "settling (gyro-z ringing)",
+                "return": "returning to the start",
+                "reference": "referencing the stage",
+            }[p.phase]
+            self.progress.update(
+                self.pos_task, info=f"position {max(p.position, 1)} of {p.positions}: {what}"
+            )
+            if p.phase == "move":
+                self.progress.update(self.dwell_task, completed=0.0, info="")
+        elif p.phase == "dwell":
+            m, s = p.gyro_mean_dph, p.gyro_std_of_mean_dph
+            self.progress.update(
+                self.pos_task, info=f"position {p.position} of {p.positions} at {p.target_deg:.1f}°"
+            )
+            self.progress.update(
+                self.dwell_task,
+                completed=p.dwell_done_s,
+                info=f"{p.dwell_done_s:5.1f}/{p.dwell_s:g} s  gyro x {m[0]:+8.3f} y {m[1]:+8.3f} "
+                f"z {m[2]:+8.3f} °/h  σ(mean) {s[1]:.3f} °/h",
+            )
+        elif p.phase == "measured":
+            self.progress.update(self.pos_task, completed=p.position)
+
+    def __enter__(self) -> _ProgressView:
+        self.progress.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.progress.stop()
+
+
+def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
+    """The rich summary table: heading ± σ, tilt, every method, positions, truth and error."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = console or Console()
+    t = result["tilt"]
+    head = Table(title="northfinder result", show_header=False, box=None)
+    head.add_row(
+        "heading",
+        f"[bold]{result['heading_deg']:.4f}° ± {result['heading_std_deg']:.4f}°[/] (1σ, {result['method']})",
+    )
+    head.add_row(
+        "tilt",
+        f"{t['tilt_deg']:.4f}° toward {t['tilt_azimuth_deg']:.2f}°  "
+        f"(pitch {t['pitch_deg']:+.4f}°, roll {t['roll_deg']:+.4f}°)",
+    )
+    head.add_row("latitude", f"{result['latitude_deg']:.4f}°")
+    head.add_row(
+        "device time", f"{result['duration_device_s']:.1f} s over {result['positions_measured']} positions"
+    )
+    if "truth" in result:
+        tr = result["truth"]
+        head.add_row(
+            "truth",
+            f"heading {tr['heading_deg']:.4f}°, pitch {tr['pitch_deg']:+.4f}°, roll {tr['roll_deg']:+.4f}°",
+        )
+        ratio = (
+            abs(result["error_deg"]) / result["heading_std_deg"] if result["heading_std_deg"] else math.inf
+        )
+        head.add_row("error", f"[bold]{result['error_deg']:+.4f}°[/] ({ratio:.2f} σ)")
+    if not result.get("complete", True):
+        head.add_row(
+            "[red]INCOMPLETE[/]",
+            f"{result['positions_measured']} of {result['positions_planned']} positions measured",
+        )
+    console.print(head)
+    methods = Table(title="every method")
+    methods.add_column("method")
+    methods.add_column("heading [deg]", justify="right")
+    methods.add_column("σ [deg]", justify="right")
+    if "truth" in result:
+        methods.add_column("error [deg]", justify="right")
+    for name, m in result["methods"].items():
+        h = m.get("heading_deg")
+        s = m.get("heading_std_deg")
+        row = [
+            name + (" *" if name == result["method"] else ""),
+            "—" if h is None else f"{h:.4f}",
+            "—" if s is None else f"{s:.4f}",
+        ]
+        if "truth" in result:
+            from northfinder.constants import wrap_deg_180
+
+            row.append(
+                "—" if h is None else f"{float(wrap_deg_180(h - result['truth']['heading_deg'])):+.4f}"
+            )
+        methods.add_row(*row)
+    console.print(methods)
+    pos = Table(title="positions")
+    for col in (
+        "#",
+        "α [deg]",
+        "gyro x [°/h]",
+        "gyro y [°/h]",
+        "gyro z [°/h]",
+        "accel x [g]",
+        "accel y [g]",
+        "accel z [g]",
+        "samples",
+        "lost",
+        "accel n",
+        "accel lost",
+    ):
+        pos.add_column(col, justify="right")
+    for i, p in enumerate(result["positions"], 1):
+        g, a = p["gyro_dph"], p["accel_g"]
+        pos.add_row(
+            str(i),
+            f"{p['table_angle_deg']:.3f}",
+            *(f"{v:+.4f}" for v in g),
+            *("—" if v is None else f"{v:+.6f}" for v in a),
+            str(p["samples"]),
+            str(p["lost_samples"]),
+            str(p["accel_samples"]),
+            str(p["accel_lost_samples"]),
+        )
+    console.print(pos)
+    if run_dir is not None:
+        console.print(f"run directory: {run_dir}")
+
+
+def run(args: argparse.Namespace) -> int:
+    _check_flags(args)
+    settings: SimSettings | None = None
+    if args.simulate:
+        settings = SimSettings(
+            heading_deg=args.heading,
+            pitch_deg=args.pitch,
+            roll_deg=args.roll,
+            latitude_deg=args.latitude if args.latitude is not None else SimSettings.latitude_deg,
+            grade=args.grade,
+            seed=args.seed,
+            time_scale=args.time_scale,
+            faults=tuple(args.fault),
+            config=args.sim_config,
+        )
+        cfg = bench.BenchConfig(source="--simulate")
+        cfg.site.latitude_deg = settings.latitude_deg
+        cfg = _apply_overrides(cfg, args)
+    else:
+        cfg = _apply_overrides(bench.load(args.config), args)
+        bench.require_ports(cfg)
+    rundir = RunDir(args.out or default_out())
+    with contextlib.ExitStack() as stack:
+        if settings is not None:
+            endpoints = stack.enter_context(SimulatorProcess(settings))
+            cfg = bench_config(endpoints, settings.latitude_deg, cfg)
+        return _measure(cfg, rundir, args, settings)
+
+
+def _measure(
+    cfg: bench.BenchConfig, rundir: RunDir, args: argparse.Namespace, settings: SimSettings | None
+) -> int:
+    t_wall = time.monotonic()
+    truth = settings.truth() if settings else None
+    rundir.write_json(
+        CONFIG,
+        {
+            "bench": cfg.to_dict(),
+            "simulate": None
+            if settings is None
+            else {
+                **settings.truth(),
+                "grade": settings.grade,
+                "seed": settings.seed,
+                "time_scale": settings.time_scale,
+                "faults": list(settings.faults),
+            },
+            "argv": sys.argv,
+        },
+    )
+    stop = StopFlag()
+    with stop.installed(), open_bench(cfg, rundir) as (tt, imu, acc):
+        if cfg.imu.rate_hz != imu.rate_hz:
+            imu.configure(rate_hz=cfg.imu.rate_hz)
+        acc.start_node()
+        acc.wait_heartbeat()
+        rundir.log_event(
+            {
+                "event": "start",
+                "utc": datetime.now(UTC).isoformat(),
+                "latitude_deg": cfg.site.latitude_deg,
+                "height_m": cfg.site.height_m,
+                "method": cfg.estimator.method,
+                "positions_planned": cfg.run.positions,
+                "dwell_s": cfg.run.dwell_s,
+                "imu": {
+                    "port": cfg.imu.port,
+                    "rate_hz": imu.rate_hz,
+                    "rot_format": imu.rot_format,
+                    "rot_units": imu.rot_units,
+                },
+                "accelerometer": {
+                    "interface": cfg.accelerometer.interface,
+                    "channel": cfg.accelerometer.channel,
+                    "node_id": cfg.accelerometer.node_id,
+                    "rate_hz": cfg.accelerometer.rate_hz,
+                },
+                "truth": truth,
+            }
+        )
+        view = _ProgressView(cfg.run.positions, cfg.run.dwell_s, enabled=True)
+        seq = Sequencer(
+            tt,
+            imu,
+            acc,
+            cfg.run,
+            allow_home=cfg.turntable.allow_home,
+            rundir=rundir,
+            on_progress=view,
+            stop_flag=stop,
+            accel_rate_hz=cfg.accelerometer.rate_hz,
+        )
+        try:
+            with view:
+                positions = seq.run()
+        except Interrupted as intr:
+            return _aborted(intr, cfg, rundir, truth, args)
+    result = compute_result(
+        positions,
+        cfg.site.latitude_deg,
+        cfg.estimator.method,
+        height_m=cfg.site.height_m,
+        truth=truth,
+        positions_planned=cfg.run.positions,
+    )
+    _save(result, rundir, args)
+    print_summary(result, run_dir=rundir.path)
+    print(f"wall time {time.monotonic() - t_wall:.1f} s", file=sys.stderr)
+    return 0
+
+
+def _save(result: dict[str, Any], rundir: RunDir, args: argparse.Namespace) -> None:
+    rundir.write_json(RESULT, result)
+    if args.json:
+        RunDir(Path(args.json).parent or ".").write_json(Path(args.json).name, result)
+    if not args.no_report and result is not None:
+        from northfinder.report import write_report
+
+        write_report(result, rundir.report_path)
+
+
+def _aborted(
+    intr: Interrupted,
+    cfg: bench.BenchConfig,
+    rundir: RunDir,
+    truth: dict[str, float] | None,
+    args: argparse.Namespace,
+) -> int:
+    k, n = len(intr.positions), cfg.run.positions
+    rundir.log_event({"event": "end", "complete": False, "positions_measured": k})
+    if k >= 3:
+        result = compute_result(
+            intr.positions,
+            cfg.site.latitude_deg,
+            cfg.estimator.method,
+            height_m=cfg.site.height_m,
+            truth=truth,
+            complete=False,
+            positions_planned=n,
+        )
+        _save(result, rundir, args)
+    err = RunAborted(
+        f"run stopped ({intr}); stage {intr.stage_state}; {k} of {n} positions saved in "
+        f"{rundir.path} (northfinder replay {rundir.path})"
+    )
+    if intr.signum == 15:
+        err.exit_code = 143
+    raise err
