@@ -346,3 +346,14 @@ def test_bad_fault_value_names_the_fault():
         ca.AccelFaults.from_spec({"accel-emcy": "soon"})
     with pytest.raises(ValueError, match="accel-loss-rate"):
         ca.AccelFaults.from_spec({"accel-loss-rate": 1.5})
+
+
+def test_faults_from_the_simulators_fault_specs():
+    from firmware_sim.faults import parse_faults
+
+    faults = parse_faults(["accel-loss-rate=0.25", "accel-emcy=3:0x8130", "accel-heartbeat-loss=4",
+                           "imu-crc-rate=0.1"])
+    for spec in (faults, faults.for_accel()):
+        got = ca.AccelFaults.from_spec(spec)
+        assert (got.loss_rate, got.emcy, got.heartbeat_loss_at_s) == (0.25, [(3.0, 0x8130)], 4.0)
+    assert ca.AccelFaults.from_spec(parse_faults([])) == ca.AccelFaults()

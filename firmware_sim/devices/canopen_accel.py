@@ -153,7 +153,8 @@ class AccelFaults:
 
         Values may be numbers or the strings of `--fault NAME=VALUE`; other names are ignored
         (they belong to other devices). `accel-emcy` may be one value or a list of them, each
-        `AT_S` (code 0x5000 device hardware) or `AT_S:CODE` (CODE in hex or decimal).
+        `AT_S` (code 0x5000 device hardware), `AT_S:CODE` (CODE in hex or decimal) or a tuple
+        (at_s, code). A `firmware_sim.faults.Faults` (or its `for_accel()` mapping) works too.
         """
         if faults is None:
             return cls()
@@ -171,7 +172,8 @@ class AccelFaults:
                 if not 0.0 <= out.loss_rate <= 1.0:
                     raise ValueError(f"fault accel-loss-rate={value}: give a probability in [0, 1]")
             elif name == "accel-emcy":
-                values = value if isinstance(value, list | tuple) else [value]
+                # a tuple is one (at_s, code) as in firmware_sim.faults.Faults; a list is several
+                values = [value] if isinstance(value, tuple) or not isinstance(value, list) else value
                 for v in values:
                     out.emcy.append(_parse_emcy(v))
                 out.emcy.sort()
@@ -181,6 +183,8 @@ class AccelFaults:
 
 
 def _parse_emcy(value: Any) -> tuple[float, int]:
+    if isinstance(value, tuple) and len(value) == 2:
+        return float(value[0]), int(value[1])
     if isinstance(value, int | float):
         return float(value), EMCY_DEVICE_HARDWARE
     text = str(value)

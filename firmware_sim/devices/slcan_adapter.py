@@ -13,20 +13,16 @@ sends `O` twice and `C` first); an empty line (python-can's empty data-bitrate c
 
 from __future__ import annotations
 
-import errno
 import logging
-import os
-import termios
-import tty
 from dataclasses import dataclass
 from typing import Any
 
 import can
 
 from firmware_sim.devices.base import Device
+from firmware_sim.pty import PtyPort
 
 log = logging.getLogger(__name__)
-raw_log = logging.getLogger(__name__ + ".raw")  # the one place raw pty traffic is logged
 
 OK = b"\r"
 BELL = b"\x07"
@@ -43,7 +39,7 @@ BITRATES = {
     "S7": 750_000,
     "S8": 1_000_000,
 }
-MAX_PENDING_BYTES = 256 * 1024  # adapter's transmit buffer toward the host; beyond it frames drop
+TX_BACKLOG_BYTES = 256 * 1024  # adapter's buffer toward the host (≈ 12 000 TPDO lines); then frames drop
 
 
 # ---------------------------------------------------------------------------------------------
@@ -93,21 +89,6 @@ def decode_frame(line: bytes) -> can.Message:
     )
 
 
-# ---------------------------------------------------------------------------------------------
-# pty
-# ---------------------------------------------------------------------------------------------
-def open_raw_pty() -> tuple[int, int, str]:
-    """A pty pair in raw mode: (non-blocking master fd, slave fd kept open, slave path).
-
-    The slave fd stays open in this process so the master never sees EIO/hang-up while no client
-    is attached (or between two clients).
-    """
-    master_fd, slave_fd = os.openpty()
-    tty.setraw(slave_fd, termios.TCSANOW)
-    os.set_blocking(master_fd, False)
-    return master_fd, slave_fd, os.ttyname(slave_fd)
-
-
 @dataclass
 class AdapterStats:
     """Traffic through the adapter, both ways."""
@@ -120,97 +101,95 @@ class AdapterStats:
 
 
 class SlcanAdapter(Device):
-    """A Lawicel/slcan adapter: a raw pty on one side, `internal_bus` on the other."""
+    """A Lawicel/slcan adapter: a raw pty (firmware_sim.pty, which logs the raw bytes) on one side,
+    `internal_bus` on the other."""
 
     name = "can"
 
-    def __init__(self, internal_bus: can.BusABC) -> None:
+    def __init__(self, internal_bus: can.BusABC, *, backlog_bytes: int = TX_BACKLOG_BYTES) -> None:
         self.bus = internal_bus
-        self.master_fd, self._slave_fd, self.slave_path = open_raw_pty()
+        self.port = PtyPort("slcan", backlog_bytes=backlog_bytes)
         self.bitrate: int | None = None
         self.is_open = False
         self.listen_only = False
         self.stats = AdapterStats()
         self._rx = bytearray()  # bytes from the client, up to an incomplete line
-        self._tx = bytearray()  # bytes owed to the client
         self._closed = False
+
+    @property
+    def slave_path(self) -> str:
+        return self.port.path
 
     # -- Device surface --------------------------------------------------------------------
     def fileno(self) -> int | None:
-        return None if self._closed else self.master_fd
+        return None if self._closed else self.port.fileno()
 
     def endpoint(self) -> dict[str, Any]:
-        return {"interface": "slcan", "channel": self.slave_path}
+        return {"interface": "slcan", "channel": self.port.path}
 
     def on_readable(self, t_device_s: float) -> None:
         """Read what the client typed, answer each command, put its frames onto the bus."""
         if self._closed:
             return
-        while True:
-            try:
-                chunk = os.read(self.master_fd, 65536)
-            except BlockingIOError:
-                break
-            except OSError as exc:
-                if exc.errno == errno.EIO:  # no slave open: nothing to read
-                    break
-                raise
-            if not chunk:
-                break
-            raw_log.debug("rx %r", chunk)
+        while chunk := self.port.read():
             self._rx.extend(chunk)
-        self._handle_lines()
-        self._flush()
+        reply = self._handle_lines()
+        if reply:
+            self.port.write(reply)
+        if not self.port.connected and self.is_open:
+            # the client went away without `C`: a real adapter would keep its channel open, but
+            # nobody reads it; close it so stale frames do not greet the next client
+            self.is_open = False
 
     def advance(self, t_device_s: float) -> None:
         """Forward every frame waiting on the internal bus (if open), then write what is owed."""
         if self._closed:
             return
+        out = bytearray()
+        room = self.port.backlog_bytes - self.port.pending
         while (msg := self.bus.recv(timeout=0)) is not None:
             if msg.is_error_frame or msg.is_fd:
                 continue
             if not self.is_open:
                 self.stats.dropped_closed += 1
                 continue
-            if len(self._tx) > MAX_PENDING_BYTES:
+            line = encode_frame(msg)
+            if len(out) + len(line) > room:  # drop whole frames, never half a line
                 self.stats.overruns += 1
                 continue
-            self._tx += encode_frame(msg)
+            out += line
             self.stats.to_client += 1
-        self._flush()
+        if out:
+            self.port.write(bytes(out))
+        else:
+            self.port.flush()
 
     def close(self) -> None:
         if self._closed:
             return
         self._closed = True
-        for fd in (self.master_fd, self._slave_fd):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
+        self.port.close()
 
     # -- protocol ------------------------------------------------------------------------------
-    def _handle_lines(self) -> None:
+    def _handle_lines(self) -> bytes:
+        replies = bytearray()
         while True:
             end = self._rx.find(b"\r")
             if end < 0:
                 break
             line = bytes(self._rx[:end]).replace(b"\n", b"")
             del self._rx[: end + 1]
-            reply = self.command(line)
-            if reply:
-                self._tx += reply
+            replies += self.command(line)
         if len(self._rx) > 4096:  # garbage without a CR: a real adapter's line buffer overflows
             self._rx.clear()
-            self._tx += BELL
-            self.stats.errors += 1
+            replies += self._error()
+        return bytes(replies)
 
     def command(self, line: bytes) -> bytes:
         """Act on one line from the client (without its `\\r`); return the reply bytes."""
         if not line:
             return b""
-        head = line[:1]
-        if head in b"tTrR" and len(head) == 1:
+        if line[:1] in (b"t", b"T", b"r", b"R"):
             return self._client_frame(line)
         text = line.decode("ascii", errors="replace")
         if text in BITRATES:
@@ -245,19 +224,3 @@ class SlcanAdapter(Device):
     def _error(self) -> bytes:
         self.stats.errors += 1
         return BELL
-
-    def _flush(self) -> None:
-        """Write as much of what is owed as the pty takes now; the rest waits for the next call."""
-        if not self._tx:
-            return
-        try:
-            n = os.write(self.master_fd, self._tx)
-        except BlockingIOError:
-            return
-        except OSError as exc:
-            if exc.errno == errno.EIO:
-                return
-            raise
-        if raw_log.isEnabledFor(logging.DEBUG):
-            raw_log.debug("tx %r", bytes(self._tx[:n]))
-        del self._tx[:n]
