@@ -179,6 +179,8 @@ class AccelFrameDecoder:
         if decoded is None:
             return None
         name, sig = decoded
+        if name == "NMT":  # commands from the host: nothing to decode into samples
+            return name
         self.stats.frames += 1
         if name == "TPDO1":
             if self._pending_xy is not None:

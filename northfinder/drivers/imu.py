@@ -1,0 +1,328 @@
+"""KVH 1750/1760/1775 IMU driver, format A (docs/PROTOCOLS.md §2).
+
+A background thread reads whatever the port delivers, writes it to the raw log as it arrives
+(through :class:`northfinder.transport.SerialTransport`, the one logging place), and feeds it to
+:class:`northfinder.codecs.kvh.KvhDecoder`, which finds headers, checks CRCs, resyncs, decodes
+all complete frames of the chunk at once and unwraps the 7-bit sequence into a monotonic device
+sample index. :meth:`Imu.read` blocks until the next n samples are there. Gyro fields become
+rad/s whatever the device's ``ROTFMT`` (delta angle or rate) and ``ROTUNITS`` (rad or deg);
+``time_s = sample_index / rate_hz`` is device time.
+
+:func:`decode_imu_stream` is the pure replay path: the same decoder and conversion, so a raw log
+replays to bit-identical arrays.
+
+Example::
+
+    from northfinder.drivers.imu import Imu
+
+    with Imu("/dev/ttyUSB1", raw_log="imu.raw") as imu:
+        imu.configure(rate_hz=1000, rot_format="DELTA", rot_units="RAD")
+        block = imu.read(1000)                       # one second of samples
+        print(block.gyro_rad_s.mean(axis=0), imu.stats)
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import BinaryIO, Protocol
+
+import numpy as np
+
+from northfinder.codecs import kvh
+from northfinder.codecs.kvh import ImuStats, KvhDecoder
+from northfinder.errors import ConfigError, DeviceError
+from northfinder.transport import SerialTransport
+
+__all__ = ["Imu", "ImuBlock", "ImuStats", "decode_imu_stream", "frames_to_block"]
+
+DEVICE = "imu"
+INVALID_AFTER_RATE_CHANGE = 2  # PROTOCOLS.md §2: the next 2 messages after =DR are not valid data
+
+
+@dataclass(frozen=True)
+class ImuBlock:
+    """Consecutive decoded samples. `lost_samples` counts gaps inside the block."""
+
+    sample_index: np.ndarray  # int64 [n], device sample count
+    gyro_rad_s: np.ndarray  # float64 [n, 3]
+    accel_g: np.ndarray  # float64 [n, 3]
+    status: np.ndarray  # uint8 [n]
+    temperature_c: np.ndarray  # float64 [n]
+    lost_samples: int
+    rate_hz: float
+
+    @property
+    def time_s(self) -> np.ndarray:
+        """Device time of each sample: sample_index / rate_hz."""
+        return self.sample_index / self.rate_hz
+
+    def __len__(self) -> int:
+        return len(self.sample_index)
+
+
+def frames_to_block(sample_index: np.ndarray, frames: np.ndarray, rate_hz: float, rot_format: str,
+                    rot_units: str) -> ImuBlock:
+    """Decoded format-A frames → an ImuBlock in rad/s and g (live and replay use this one)."""
+    scale = kvh.gyro_scale_to_rad_s(rate_hz, rot_format, rot_units)
+    index = np.asarray(sample_index, dtype=np.int64)
+    lost = int(index[-1] - index[0] + 1 - len(index)) if len(index) else 0
+    return ImuBlock(
+        sample_index=index,
+        gyro_rad_s=frames["gyro"].astype(np.float64) * scale,
+        accel_g=frames["accel"].astype(np.float64),
+        status=frames["status"].astype(np.uint8),
+        temperature_c=frames["temperature"].astype(np.float64),
+        lost_samples=lost,
+        rate_hz=float(rate_hz),
+    )
+
+
+def decode_imu_stream(raw: bytes, rate_hz: float = 1000.0, rot_format: str = "DELTA",
+                      rot_units: str = "RAD") -> tuple[ImuBlock, ImuStats]:
+    """Decode a whole raw IMU log (replay): every good frame, and the stream's counters."""
+    decoder = KvhDecoder()
+    out = decoder.feed(raw)
+    return frames_to_block(out.sample_index, out.frames, rate_hz, rot_format, rot_units), decoder.stats
+
+
+class _ByteTransport(Protocol):  # what the driver needs from SerialTransport (tests pass their own)
+    url: str
+
+    def write(self, data: bytes) -> None: ...
+    def read_available(self, max_bytes: int = ...) -> bytes: ...
+    def close(self) -> None: ...
+
+
+class Imu:
+    """A KVH format-A IMU on a pyserial URL; a context manager with a background reader."""
+
+    def __init__(
+        self,
+        port: str,
+        *,
+        baudrate: int = 921600,
+        raw_log: str | Path | BinaryIO | None = None,
+        timeout_s: float = 2.0,
+        rate_hz: float = 1000.0,
+        rot_format: str = "DELTA",
+        rot_units: str = "RAD",
+        wait_for_data: bool = True,
+        transport: _ByteTransport | None = None,
+    ) -> None:
+        self.port = port
+        self.timeout_s = float(timeout_s)
+        self.rate_hz = float(rate_hz)
+        self.rot_format = rot_format.upper()
+        self.rot_units = rot_units.upper()
+        kvh.gyro_scale_to_rad_s(self.rate_hz, self.rot_format, self.rot_units)  # validates
+        self._t = transport if transport is not None else SerialTransport(
+            port, device=DEVICE, baudrate=baudrate, timeout_s=0.05, raw_log=raw_log
+        )
+        self._decoder = KvhDecoder()
+        self._cond = threading.Condition()
+        self._pending: list[tuple[np.ndarray, np.ndarray]] = []
+        self._pending_n = 0
+        self._config_mode = False
+        self._text = bytearray()
+        self._discard_next = 0
+        self._error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._reader, name=f"imu-reader {port}", daemon=True)
+        self._thread.start()
+        if wait_for_data:
+            try:
+                self._wait_for_first_frame()
+            except BaseException:
+                self.close()
+                raise
+
+    # -- background reader -------------------------------------------------------------------
+    def _reader(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self._t.read_available()
+            except BaseException as exc:  # noqa: BLE001 - handed to the reading thread
+                with self._cond:
+                    self._error = exc
+                    self._cond.notify_all()
+                return
+            if not data:
+                continue
+            with self._cond:
+                if self._config_mode:
+                    self._text += data
+                out = self._decoder.feed(data)
+                if len(out):
+                    index, frames = out.sample_index, out.frames
+                    if self._discard_next:
+                        k = min(self._discard_next, len(index))
+                        self._discard_next -= k
+                        self._decoder.stats.discarded_frames += k
+                        index, frames = index[k:], frames[k:]
+                    if len(index):
+                        self._pending.append((index, frames))
+                        self._pending_n += len(index)
+                self._cond.notify_all()
+
+    def _wait_for_first_frame(self) -> None:
+        deadline = time.monotonic() + self.timeout_s
+        with self._cond:
+            while self._decoder.stats.frames == 0:
+                if self._error is not None:
+                    raise self._error
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    got = self._decoder.stats.bytes
+                    raise DeviceError(
+                        DEVICE, self.port,
+                        f"no KVH format-A data on {self.port} within {self.timeout_s:g} s ({got} bytes of "
+                        "something else) — is it the IMU's port?"
+                    )
+                self._cond.wait(remaining)
+
+    # -- samples -----------------------------------------------------------------------------
+    def read(self, n_samples: int, timeout_s: float | None = None) -> ImuBlock:
+        """The next `n_samples` samples, blocking; DeviceError naming the port on timeout."""
+        n = int(n_samples)
+        if n < 1:
+            raise ValueError("n_samples must be >= 1")
+        wait_s = self.timeout_s + n / self.rate_hz if timeout_s is None else float(timeout_s)
+        deadline = time.monotonic() + wait_s
+        with self._cond:
+            while self._pending_n < n:
+                if self._error is not None:
+                    raise self._error
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DeviceError(
+                        DEVICE, self.port,
+                        f"only {self._pending_n} of {n} samples arrived within {wait_s:g} s on {self.port} "
+                        "— is the IMU still streaming (cable, rate, not left in config mode)?"
+                    )
+                self._cond.wait(remaining)
+            index = np.concatenate([c[0] for c in self._pending])
+            frames = np.concatenate([c[1] for c in self._pending])
+            rest_index, rest_frames = index[n:], frames[n:]
+            self._pending = [(rest_index, rest_frames)] if len(rest_index) else []
+            self._pending_n = len(rest_index)
+            rate, fmt, units = self.rate_hz, self.rot_format, self.rot_units
+        return frames_to_block(index[:n], frames[:n], rate, fmt, units)
+
+    def discard_pending(self) -> int:
+        """Drop samples decoded but not read yet (e.g. those from before a move); returns how many."""
+        with self._cond:
+            n, self._pending, self._pending_n = self._pending_n, [], 0
+        return n
+
+    @property
+    def stats(self) -> ImuStats:
+        """A snapshot of the stream counters."""
+        with self._cond:
+            return replace(self._decoder.stats)
+
+    # -- configuration -----------------------------------------------------------------------
+    def _await_reply(self, key: str, timeout_s: float) -> str:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                for k, value, end in kvh.find_config_replies(bytes(self._text)):
+                    if k == key:
+                        del self._text[:end]
+                        return value
+                if self._error is not None:
+                    raise self._error
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DeviceError(DEVICE, self.port, f"no answer to ?{key} on {self.port} within "
+                                      f"{timeout_s:g} s — is it a KVH IMU in format A on this port?")
+                self._cond.wait(remaining)
+
+    def _enter_config(self) -> None:
+        with self._cond:
+            self._config_mode = True
+            self._text.clear()
+        self._t.write(kvh.encode_set("CONFIG", 1))
+
+    def _leave_config(self, invalid_next: int = 0) -> None:
+        with self._cond:
+            self._pending, self._pending_n = [], 0
+            self._discard_next = invalid_next
+            self._config_mode = False
+            self._text.clear()
+        self._t.write(kvh.encode_set("CONFIG", 0))
+
+    def query(self, key: str) -> str:
+        """``?KEY`` → its value ("DR" → "1000"); enters and leaves config mode if needed."""
+        key = key.upper()
+        inside = self._config_mode
+        if not inside:
+            self._enter_config()
+        try:
+            self._t.write(kvh.encode_query(key))
+            return self._await_reply(key, self.timeout_s)
+        finally:
+            if not inside:
+                self._leave_config()
+
+    def configure(self, rate_hz: float | None = None, rot_format: str | None = None,
+                  rot_units: str | None = None) -> dict[str, str]:
+        """Set what is given inside ``=CONFIG,1`` … ``=CONFIG,0`` and read all three back.
+
+        Samples pending before the change are dropped, and after a rate change the 2 invalid
+        messages the device sends are discarded (counted in ``stats.discarded_frames``).
+        """
+        if rate_hz is not None and int(rate_hz) not in kvh.RATES_HZ:
+            raise ConfigError(f"imu rate_hz {rate_hz} is not one the KVH supports: {kvh.RATES_HZ}")
+        if rot_format is not None and rot_format.upper() not in kvh.ROT_FORMATS:
+            raise ConfigError(f"imu rot_format {rot_format!r} must be one of {kvh.ROT_FORMATS}")
+        if rot_units is not None and rot_units.upper() not in kvh.ROT_UNITS:
+            raise ConfigError(f"imu rot_units {rot_units!r} must be one of {kvh.ROT_UNITS}")
+        self._enter_config()
+        rate_changed = False
+        try:
+            if rate_hz is not None:
+                self._t.write(kvh.encode_set("DR", int(rate_hz)))
+            if rot_format is not None:
+                self._t.write(kvh.encode_set("ROTFMT", rot_format.upper()))
+            if rot_units is not None:
+                self._t.write(kvh.encode_set("ROTUNITS", rot_units.upper()))
+            values = {key: self.query(key) for key in ("DR", "ROTFMT", "ROTUNITS")}
+            try:
+                new_rate = float(values["DR"])
+                kvh.gyro_scale_to_rad_s(new_rate, values["ROTFMT"], values["ROTUNITS"])
+            except ValueError:
+                raise DeviceError(DEVICE, self.port, f"unexpected configuration reply {values} — is it a "
+                                  "KVH IMU in format A?") from None
+            for asked, key in ((rate_hz, "DR"), (rot_format, "ROTFMT"), (rot_units, "ROTUNITS")):
+                if asked is not None and str(asked).upper() != values[key].upper() and not (
+                        key == "DR" and float(asked) == float(values[key])):
+                    raise DeviceError(DEVICE, self.port, f"the IMU did not accept {key}={asked} "
+                                      f"(it reports {values[key]})")
+            rate_changed = new_rate != self.rate_hz or rate_hz is not None
+            with self._cond:
+                self.rate_hz = new_rate
+                self.rot_format = values["ROTFMT"].upper()
+                self.rot_units = values["ROTUNITS"].upper()
+        finally:
+            self._leave_config(INVALID_AFTER_RATE_CHANGE if rate_changed else 0)
+        return values
+
+    # -- lifetime ----------------------------------------------------------------------------
+    def close(self) -> None:
+        """Stop the reader thread and close the port (and the raw log if the driver opened it)."""
+        self._stop.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+        self._t.close()
+
+    def __enter__(self) -> Imu:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Imu({self.port!r}, rate_hz={self.rate_hz:g}, {self.rot_format}/{self.rot_units})"
