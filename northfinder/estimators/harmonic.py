@@ -20,7 +20,7 @@ import numpy as np
 
 from northfinder.errors import InputError
 
-MAX_CONDITION = 1.0e4
+MAX_CONDITION = 1.0e3
 """Largest accepted condition number of the column-normalised design matrix."""
 
 BIAS_MODELS = {"constant": 0, "linear": 1, "quadratic": 2}
@@ -89,14 +89,17 @@ def design_matrix(
 
 
 def check_conditioning(a_matrix: np.ndarray, weights: np.ndarray, what: str) -> float:
-    """Raise InputError when the table angles (and times) cannot separate cos α and sin α."""
+    """Raise InputError when the table angles (and times) cannot separate cos α and sin α.
+
+    Columns are scaled by their ideal norms (√(Σw/2) for cos/sin, √Σw for bias terms), not by
+    their own, so a column that is ~0 (all α at 0° and 180°: sin α ≈ 1e-16) stays ~0. The
+    condition number is then 1 for equally spaced positions.
+    """
     aw = a_matrix * np.sqrt(weights)[:, None]
-    norms = np.linalg.norm(aw, axis=0)
-    if np.any(norms == 0.0):
-        raise InputError(
-            f"{what}: the table angles cannot separate cos α and sin α; spread the positions over the circle"
-        )
-    cond = float(np.linalg.cond(aw / norms))
+    total = float(np.sum(weights))
+    scale = np.full(a_matrix.shape[1], np.sqrt(total))
+    scale[:2] = np.sqrt(total / 2.0)
+    cond = float(np.linalg.cond(aw / scale))
     if not np.isfinite(cond) or cond > MAX_CONDITION:
         raise InputError(
             f"{what}: the table angles cannot separate cos α and sin α (condition number {cond:.3g} > "
