@@ -115,9 +115,15 @@ def zxy_rotation(z, x, y, z_dot, x_dot, y_dot, z_ddot, x_ddot, y_ddot):
     w = np.stack([cy * x_dot - sy * cx * z_dot, sx * z_dot + y_dot, sy * x_dot + cy * cx * z_dot], axis=-1)
     w_dot = np.stack(
         [
-            -sy * y_dot * x_dot + cy * x_ddot - (cy * y_dot * cx * z_dot - sy * sx * x_dot * z_dot + sy * cx * z_ddot),
+            -sy * y_dot * x_dot
+            + cy * x_ddot
+            - (cy * y_dot * cx * z_dot - sy * sx * x_dot * z_dot + sy * cx * z_ddot),
             cx * x_dot * z_dot + sx * z_ddot + y_ddot,
-            cy * y_dot * x_dot + sy * x_ddot - sy * y_dot * cx * z_dot - cy * sx * x_dot * z_dot + cy * cx * z_ddot,
+            cy * y_dot * x_dot
+            + sy * x_ddot
+            - sy * y_dot * cx * z_dot
+            - cy * sx * x_dot * z_dot
+            + cy * cx * z_ddot,
         ],
         axis=-1,
     )
@@ -127,4 +133,6 @@ def zxy_rotation(z, x, y, z_dot, x_dot, y_dot, z_ddot, x_ddot, y_ddot):
 def rot_z_transpose_apply(alpha, v) -> np.ndarray:
     """Rz(α)ᵀ·v without building matrices (C_p^b v for the table angle α), batched."""
     c, s = np.cos(alpha), np.sin(alpha)
-    return np.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1], v[..., 2] + 0.0 * c], axis=-1)
+    return np.stack(
+        [c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1], v[..., 2] + 0.0 * c], axis=-1
+    )

@@ -106,41 +106,71 @@ class AccelErrors(_PerAxis):
 #        (~25–50 µg/√Hz, sub-mg bias). consumer: phone-class MEMS (~150–300 µg/√Hz, tens of mg).
 GYRO_PRESETS: dict[str, GyroErrors] = {
     "nav": GyroErrors(
-        bias_dph=(0.004, -0.003, 0.002), arw_deg_rt_h=0.002, bias_instability_dph=0.005, bi_correlation_s=600.0,
-        rrw_dph_rt_h=0.0005, scale_factor_ppm=(1.0, -1.0, 1.0),
+        bias_dph=(0.004, -0.003, 0.002),
+        arw_deg_rt_h=0.002,
+        bias_instability_dph=0.005,
+        bi_correlation_s=600.0,
+        rrw_dph_rt_h=0.0005,
+        scale_factor_ppm=(1.0, -1.0, 1.0),
         misalignment_urad=(5.0, -3.0, 4.0, 2.0, -6.0, 3.0),
     ),
     "kvh1760": GyroErrors(
-        bias_dph=(0.3, -0.2, 0.25), arw_deg_rt_h=0.012, bias_instability_dph=0.05, bi_correlation_s=300.0,
-        rrw_dph_rt_h=0.01, scale_factor_ppm=(50.0, -40.0, 45.0),
+        bias_dph=(0.3, -0.2, 0.25),
+        arw_deg_rt_h=0.012,
+        bias_instability_dph=0.05,
+        bi_correlation_s=300.0,
+        rrw_dph_rt_h=0.01,
+        scale_factor_ppm=(50.0, -40.0, 45.0),
         misalignment_urad=(50.0, -30.0, 40.0, 20.0, -60.0, 30.0),
     ),
     "tactical-mems": GyroErrors(
-        bias_dph=(5.0, -4.0, 3.0), arw_deg_rt_h=0.15, bias_instability_dph=0.5, bi_correlation_s=100.0,
-        rrw_dph_rt_h=0.5, scale_factor_ppm=(500.0, -400.0, 450.0),
+        bias_dph=(5.0, -4.0, 3.0),
+        arw_deg_rt_h=0.15,
+        bias_instability_dph=0.5,
+        bi_correlation_s=100.0,
+        rrw_dph_rt_h=0.5,
+        scale_factor_ppm=(500.0, -400.0, 450.0),
         misalignment_urad=(500.0, -300.0, 400.0, 200.0, -600.0, 300.0),
     ),
     "consumer": GyroErrors(
-        bias_dph=(200.0, -150.0, 100.0), arw_deg_rt_h=1.0, bias_instability_dph=10.0, bi_correlation_s=60.0,
-        rrw_dph_rt_h=10.0, scale_factor_ppm=(5000.0, -4000.0, 3000.0),
+        bias_dph=(200.0, -150.0, 100.0),
+        arw_deg_rt_h=1.0,
+        bias_instability_dph=10.0,
+        bi_correlation_s=60.0,
+        rrw_dph_rt_h=10.0,
+        scale_factor_ppm=(5000.0, -4000.0, 3000.0),
         misalignment_urad=(5000.0, -3000.0, 4000.0, 2000.0, -6000.0, 3000.0),
     ),
 }
 ACCEL_PRESETS: dict[str, AccelErrors] = {
     "nav": AccelErrors(
-        bias_ug=(30.0, -20.0, 25.0), noise_ug_rt_hz=10.0, bias_instability_ug=2.0, scale_factor_ppm=(20.0, -15.0, 10.0),
+        bias_ug=(30.0, -20.0, 25.0),
+        noise_ug_rt_hz=10.0,
+        bias_instability_ug=2.0,
+        scale_factor_ppm=(20.0, -15.0, 10.0),
         misalignment_urad=(5.0, -3.0, 4.0, 2.0, -6.0, 3.0),
     ),
     "kvh1760": AccelErrors(
-        bias_ug=(500.0, -400.0, 300.0), noise_ug_rt_hz=120.0, bias_instability_ug=50.0, bi_correlation_s=300.0,
-        scale_factor_ppm=(300.0, -250.0, 200.0), misalignment_urad=(50.0, -30.0, 40.0, 20.0, -60.0, 30.0),
+        bias_ug=(500.0, -400.0, 300.0),
+        noise_ug_rt_hz=120.0,
+        bias_instability_ug=50.0,
+        bi_correlation_s=300.0,
+        scale_factor_ppm=(300.0, -250.0, 200.0),
+        misalignment_urad=(50.0, -30.0, 40.0, 20.0, -60.0, 30.0),
     ),
     "tactical-mems": AccelErrors(
-        bias_ug=(800.0, -600.0, 700.0), noise_ug_rt_hz=40.0, bias_instability_ug=10.0, bi_correlation_s=100.0,
-        scale_factor_ppm=(1000.0, -800.0, 900.0), misalignment_urad=(500.0, -300.0, 400.0, 200.0, -600.0, 300.0),
+        bias_ug=(800.0, -600.0, 700.0),
+        noise_ug_rt_hz=40.0,
+        bias_instability_ug=10.0,
+        bi_correlation_s=100.0,
+        scale_factor_ppm=(1000.0, -800.0, 900.0),
+        misalignment_urad=(500.0, -300.0, 400.0, 200.0, -600.0, 300.0),
     ),
     "consumer": AccelErrors(
-        bias_ug=(20000.0, -15000.0, 25000.0), noise_ug_rt_hz=200.0, bias_instability_ug=100.0, bi_correlation_s=60.0,
+        bias_ug=(20000.0, -15000.0, 25000.0),
+        noise_ug_rt_hz=200.0,
+        bias_instability_ug=100.0,
+        bi_correlation_s=60.0,
         scale_factor_ppm=(10000.0, -8000.0, 9000.0),
         misalignment_urad=(5000.0, -3000.0, 4000.0, 2000.0, -6000.0, 3000.0),
     ),
@@ -161,27 +191,39 @@ class Float32Carry:
 
     q_k = f32(x_k + r_{k−1}), r_k = x_k + r_{k−1} − q_k, so Σq stays within half a float32 ulp of
     Σx however long the run (a real unit integrates internally and only rounds the output).
-    The recursion is nonlinear and strictly sequential, which numpy cannot vectorize; it runs
-    over Python floats with a C struct round-trip, ≈ 0.5 ms per 1000 three-axis samples.
+    The recursion is nonlinear and strictly sequential, which numpy cannot express: numpy
+    rounds every sample and finds both neighbouring float32 midpoints at once; the Python loop
+    only compares the carried value against them (a struct round-trip where the carry pushes
+    it past a midpoint or a tie), ≈ 1 ms per 1000 three-axis samples.
     """
 
     def __init__(self, width: int = 3) -> None:
         self.residual = [0.0] * width
-        self._s = struct.Struct(f"{width}f")
+        self._f = struct.Struct("f")
 
     def apply(self, x: np.ndarray) -> np.ndarray:
-        rows = np.asarray(x, dtype=float).tolist()
-        r = list(self.residual)
-        pack, unpack = self._s.pack, self._s.unpack
-        out = []
-        width = len(r)
-        for row in rows:
-            v = [row[i] + r[i] for i in range(width)]
-            q = unpack(pack(*v))
-            r = [v[i] - q[i] for i in range(width)]
-            out.append(q)
-        self.residual = r
-        return np.array(out, dtype=float).reshape(-1, width)
+        x = np.asarray(x, dtype=float).reshape(-1, len(self.residual))
+        q32 = x.astype(np.float32)
+        q = q32.astype(float)
+        hi = 0.5 * (q + np.nextafter(q32, np.float32(np.inf)).astype(float))
+        lo = 0.5 * (q + np.nextafter(q32, np.float32(-np.inf)).astype(float))
+        out = q.copy()
+        pack, unpack = self._f.pack, self._f.unpack
+        for ax in range(x.shape[1]):
+            xs, qs, his, los = x[:, ax].tolist(), q[:, ax].tolist(), hi[:, ax].tolist(), lo[:, ax].tolist()
+            col = list(qs)
+            r = self.residual[ax]
+            for k, xk in enumerate(xs):
+                y = xk + r
+                if los[k] < y < his[k]:
+                    r = y - qs[k]
+                else:  # the carry crosses a rounding midpoint (or sits on one): round exactly
+                    qk = unpack(pack(y))[0]
+                    col[k] = qk
+                    r = y - qk
+            out[:, ax] = col
+            self.residual[ax] = r
+        return out
 
 
 class _ErrorModel:
@@ -189,10 +231,14 @@ class _ErrorModel:
 
     _streams = ("white", "gauss_markov", "random_walk", "initial")
 
-    def __init__(self, sample_rate_hz: float, rng, sf_ppm, mis_urad, bias, white_sigma, gm_sigma, tau_s, rw_sigma):
+    def __init__(
+        self, sample_rate_hz: float, rng, sf_ppm, mis_urad, bias, white_sigma, gm_sigma, tau_s, rw_sigma
+    ):
         self.dt_s = 1.0 / float(sample_rate_hz)
         ss = _seed_sequence(rng)
-        self.rng = {name: np.random.default_rng(s) for name, s in zip(self._streams, ss.spawn(4), strict=True)}
+        self.rng = {
+            name: np.random.default_rng(s) for name, s in zip(self._streams, ss.spawn(4), strict=True)
+        }
         self.matrix_t = (np.eye(3) + np.diag(np.asarray(sf_ppm) * 1e-6) + _misalignment_matrix(mis_urad)).T
         self.bias = np.asarray(bias, dtype=float)  # per-sample increment units / s
         self.white_sigma = np.asarray(white_sigma, dtype=float)  # per sample
@@ -207,7 +253,9 @@ class _ErrorModel:
 
     def _errors(self, n: int) -> np.ndarray:
         """Rate-like error per sample [n,3] (bias + GM + random walk) and white increments."""
-        gm_in = self.rng["gauss_markov"].standard_normal((n, 3)) * (self.gm_sigma * math.sqrt(1.0 - self.phi**2))
+        gm_in = self.rng["gauss_markov"].standard_normal((n, 3)) * (
+            self.gm_sigma * math.sqrt(1.0 - self.phi**2)
+        )
         gm, self._gm_zi = lfilter([1.0], [1.0, -self.phi], gm_in, axis=0, zi=self._gm_zi)
         steps = self.rng["random_walk"].standard_normal((n, 3)) * self.rw_sigma
         rw = np.cumsum(np.concatenate([self._rw[None, :], steps]), axis=0)[1:]
@@ -234,9 +282,15 @@ class GyroModel(_ErrorModel):
         n_rad_rt_s = np.asarray(errors.arw_deg_rt_h) * DEG / 60.0
         k_rad_s_rt_s = np.asarray(errors.rrw_dph_rt_h) * DPH / 60.0
         super().__init__(
-            sample_rate_hz, rng, errors.scale_factor_ppm, errors.misalignment_urad,
-            np.asarray(errors.bias_dph) * DPH, n_rad_rt_s * math.sqrt(dt),
-            np.asarray(errors.bias_instability_dph) * DPH, errors.bi_correlation_s, k_rad_s_rt_s * math.sqrt(dt),
+            sample_rate_hz,
+            rng,
+            errors.scale_factor_ppm,
+            errors.misalignment_urad,
+            np.asarray(errors.bias_dph) * DPH,
+            n_rad_rt_s * math.sqrt(dt),
+            np.asarray(errors.bias_instability_dph) * DPH,
+            errors.bi_correlation_s,
+            k_rad_s_rt_s * math.sqrt(dt),
         )
         self._f32 = Float32Carry(3) if errors.float32_delta else None
 
@@ -256,9 +310,15 @@ class AccelModel(_ErrorModel):
         dt = 1.0 / float(sample_rate_hz)
         self.errors = errors
         super().__init__(
-            sample_rate_hz, rng, errors.scale_factor_ppm, errors.misalignment_urad,
-            np.asarray(errors.bias_ug) * UG_M_S2, np.asarray(errors.noise_ug_rt_hz) * UG_M_S2 * math.sqrt(dt),
-            np.asarray(errors.bias_instability_ug) * UG_M_S2, errors.bi_correlation_s, np.zeros(3),
+            sample_rate_hz,
+            rng,
+            errors.scale_factor_ppm,
+            errors.misalignment_urad,
+            np.asarray(errors.bias_ug) * UG_M_S2,
+            np.asarray(errors.noise_ug_rt_hz) * UG_M_S2 * math.sqrt(dt),
+            np.asarray(errors.bias_instability_ug) * UG_M_S2,
+            errors.bi_correlation_s,
+            np.zeros(3),
         )
 
     def apply(self, dv_true_m_s: np.ndarray) -> np.ndarray:

@@ -87,7 +87,9 @@ class TableMotion:
 
     def _truncate(self, t_s: float) -> tuple[float, float]:
         if t_s < self._last_cmd_s:
-            raise ValueError(f"table command at t={t_s:.6f} s is earlier than the last one ({self._last_cmd_s:.6f} s)")
+            raise ValueError(
+                f"table command at t={t_s:.6f} s is earlier than the last one ({self._last_cmd_s:.6f} s)"
+            )
         self._last_cmd_s = t_s
         p, v = self._motor_state(t_s)
         keep = self._t < t_s
@@ -139,7 +141,12 @@ class TableMotion:
         return t_end
 
     def command_move(
-        self, t_s: float, target_rad: float, *, speed_rad_s: float | None = None, stall_fraction: float | None = None
+        self,
+        t_s: float,
+        target_rad: float,
+        *,
+        speed_rad_s: float | None = None,
+        stall_fraction: float | None = None,
     ) -> float:
         """Plan a move to `target_rad` starting at device time t_s; returns the time it ends.
 

@@ -199,13 +199,18 @@ class World:
     """Site + platform + table: the truth every simulated sensor reads (one World per bench)."""
 
     def __init__(
-        self, site: Site | None = None, platform: PlatformMotion | None = None, table: TableMotion | None = None
+        self,
+        site: Site | None = None,
+        platform: PlatformMotion | None = None,
+        table: TableMotion | None = None,
     ) -> None:
         self.site = site or Site()
         self.platform = platform if platform is not None else StaticPlatform()
         self.table = table if table is not None else TableMotion()
         self.disturbances: list[Disturbance] = []
         self._static_cache: dict | None = None
+        self._still_key: tuple | None = None
+        self._still_rows: tuple[np.ndarray, np.ndarray] = (np.zeros((1, 3)), np.zeros((1, 3)))
 
     @classmethod
     def static(
@@ -221,7 +226,9 @@ class World:
         """A bench standing still at a site."""
         return cls(Site(latitude_deg, height_m), StaticPlatform(heading_deg, pitch_deg, roll_deg), table)
 
-    def add_disturbance(self, start_s: float, duration_s: float, amplitude_deg: float, **kwargs) -> Disturbance:
+    def add_disturbance(
+        self, start_s: float, duration_s: float, amplitude_deg: float, **kwargs
+    ) -> Disturbance:
         """Perturb the platform attitude smoothly over [start_s, start_s + duration_s] (a bump)."""
         if duration_s <= 0.0:
             raise ValueError("disturbance duration_s must be > 0")
@@ -239,6 +246,32 @@ class World:
             self._static_cache = {"w": c.T @ w_ie, "f": c.T @ (-g_n)}
         return self._static_cache
 
+    def attitude(self, t_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(C_p^n [N,3,3], ω_np^p [N,3], ω̇_np^p [N,3]) of the platform, disturbances included."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        active = [d for d in self.disturbances if d.touches(float(np.min(t)), float(np.max(t)))]
+        return self._disturbed(t, self.platform.kinematics(t, self.site), active)
+
+    @staticmethod
+    def _disturbed(t: np.ndarray, k: PlatformKinematics, active: list[Disturbance]):
+        """Compose the bumps: C' = C·E, ω' = Eᵀω + ω_E, ω̇' = Eᵀω̇ − ω_E × Eᵀω + ω̇_E."""
+        shape = t.shape + (3,)
+        c = np.broadcast_to(k.c_pn, t.shape + (3, 3))
+        w_np = np.broadcast_to(k.omega_np_p, shape)
+        wd_np = np.broadcast_to(k.omega_dot_np_p, shape)
+        for d in active:
+            dl, dl1, dl2 = d.delta(t)
+            wr, wp, wy = d.weights_roll_pitch_yaw
+            e, w_e, wd_e = earth.zxy_rotation(
+                -wy * dl, wp * dl, wr * dl, -wy * dl1, wp * dl1, wr * dl1, -wy * dl2, wp * dl2, wr * dl2
+            )
+            et_w = np.einsum("...ji,...j->...i", e, w_np)  # Eᵀ ω
+            et_wd = np.einsum("...ji,...j->...i", e, wd_np)
+            c = c @ e
+            w_np = et_w + w_e
+            wd_np = et_wd - np.cross(w_e, et_w) + wd_e
+        return c, w_np, wd_np
+
     def _platform_p(self, t: np.ndarray):
         """(ω_ip^p, ω̇_ip^p, f^p) of the platform's reference point at times t."""
         active = [d for d in self.disturbances if d.touches(float(np.min(t)), float(np.max(t)))]
@@ -246,17 +279,7 @@ class World:
             s = self._static_p()
             return s["w"], np.zeros(3), s["f"]
         k = self.platform.kinematics(t, self.site)
-        c, w_np, wd_np = k.c_pn, k.omega_np_p, k.omega_dot_np_p
-        for d in active:
-            dl, dl1, dl2 = d.delta(t)
-            wr, wp, wy = d.weights_roll_pitch_yaw
-            e, w_e, wd_e = earth.zxy_rotation(-wy * dl, wp * dl, wr * dl, -wy * dl1, wp * dl1, wr * dl1,
-                                              -wy * dl2, wp * dl2, wr * dl2)
-            et_w = np.einsum("...ji,...j->...i", e, w_np)  # Eᵀ ω
-            et_wd = np.einsum("...ji,...j->...i", e, wd_np)
-            c = c @ e
-            w_np = et_w + w_e
-            wd_np = et_wd - np.cross(w_e, et_w) + wd_e
+        c, w_np, wd_np = self._disturbed(t, k, active)
         lat = np.full(t.shape, self.site.latitude_deg * DEG) if k.latitude_rad is None else k.latitude_rad
         h = np.full(t.shape, self.site.height_m) if k.height_m is None else k.height_m
         w_ie = earth.earth_rate_n_rad_s(lat)
@@ -313,8 +336,13 @@ class World:
             and not any(d.touches(t0, t1) for d in self.disturbances)
             and self.table.still_between(t0, t1)
         ):
-            w, f = self.truth(np.array([t0]), r)
-            return np.repeat(w * dt, n, axis=0), np.repeat(f * dt, n, axis=0)
+            alpha = float(self.table.kinematics(np.array([t0]))[0][0])
+            key = (alpha, dt, tuple(r.tolist()))
+            if self._still_key != key:
+                w, f = self.truth(np.array([t0]), r)
+                self._still_key, self._still_rows = key, (w * dt, f * dt)
+            w_dt, f_dt = self._still_rows
+            return np.repeat(w_dt, n, axis=0), np.repeat(f_dt, n, axis=0)
         edges = t0 + dt * np.arange(n + 1)
         nodes = (edges[:-1, None] + dt * _GL_X).ravel()
         w_rot, f_b, _ = self._truth_parts(nodes, r)
