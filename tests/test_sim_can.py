@@ -357,3 +357,60 @@ def test_faults_from_the_simulators_fault_specs():
         got = ca.AccelFaults.from_spec(spec)
         assert (got.loss_rate, got.emcy, got.heartbeat_loss_at_s) == (0.25, [(3.0, 0x8130)], 4.0)
     assert ca.AccelFaults.from_spec(parse_faults([])) == ca.AccelFaults()
+
+
+# ---------------------------------------------------------------------------------------------
+# With the physics helper's World and AccelModel (expected values from northfinder's own,
+# independently written rotations and normal gravity)
+# ---------------------------------------------------------------------------------------------
+def test_node_reports_the_worlds_specific_force_in_standard_g():
+    from firmware_sim.physics.sensors import AccelErrors, AccelModel
+    from firmware_sim.physics.world import World
+    from northfinder.constants import normal_gravity_m_s2
+    from northfinder.rotations import dcm_from_euler, rot_z
+
+    lat, heading, pitch, roll = 40.0, 30.0, 2.0, -1.0
+    world = World.static(lat, heading, pitch, roll)
+    model = AccelModel(AccelErrors(), 100.0, np.random.default_rng(1))  # error-free
+    node_bus, client = buses()
+    node = CanAccelNode(node_bus, world, model)
+    node.advance(0.0)
+    nmt(client, ca.NMT_START)
+    run(node, [0.0, 0.5])
+    pairs = tpdo_pairs(drain(client))
+    assert len(pairs) == 50
+    alpha = float(np.squeeze(world.table.kinematics(0.0)[0]))  # the table stands where it powered on
+    c_bn = (dcm_from_euler(np.radians(heading), np.radians(pitch), np.radians(roll)) @ rot_z(alpha)).T
+    g = normal_gravity_m_s2(lat)
+    f_b = c_bn @ np.array([0.0, 0.0, g])
+    want_ug = f_b / G0 * 1e6
+    for m1, m2 in pairs:
+        got = np.array(struct.unpack("<ii", m1.data) + struct.unpack("<i", m2.data[:4]), dtype=float)
+        # Earth-rate centripetal and Coriolis terms are < 0.01 µg here; rounding to 1 µg
+        assert np.all(np.abs(got - want_ug) <= 0.5 + 0.05)
+    node_bus.shutdown()
+    client.shutdown()
+
+
+def test_nav_preset_noise_reaches_the_wire():
+    """Per-sample spread of z equals the preset's noise density times √rate (white noise)."""
+    from firmware_sim.physics.sensors import ACCEL_PRESETS, AccelModel
+    from firmware_sim.physics.world import World
+
+    errors = ACCEL_PRESETS["nav"]
+    rate_hz = 100.0
+    node_bus, client = buses()
+    node = CanAccelNode(node_bus, World.static(40.0), AccelModel(errors, rate_hz, np.random.default_rng(11)),
+                        rate_hz=rate_hz)
+    node.advance(0.0)
+    nmt(client, ca.NMT_START)
+    run(node, np.arange(0, 41) * 0.5)  # 20 s: 2000 samples
+    z = np.array([struct.unpack("<i", m2.data[:4])[0] for _, m2 in tpdo_pairs(drain(client))], dtype=float)
+    assert len(z) == 2000
+    sigma_ug = float(np.max(errors.noise_ug_rt_hz)) * math.sqrt(rate_hz)
+    # first differences cancel bias and slow drift; their sample std has relative standard error
+    # √(1 + 2ρ²)/√(2n) with lag-1 correlation ρ = −1/2; allow 5 of them, + 1 µg of rounding
+    rel = 5 * math.sqrt(1.5) / math.sqrt(2 * (len(z) - 1))
+    assert abs(np.std(np.diff(z)) / math.sqrt(2) - sigma_ug) < rel * sigma_ug + 1.0
+    node_bus.shutdown()
+    client.shutdown()
