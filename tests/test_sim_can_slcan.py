@@ -337,3 +337,30 @@ def test_node_on_socketcan_vcan0():
     finally:
         node_bus.shutdown()
         client.shutdown()
+
+
+def test_channel_opened_at_the_wrong_bitrate_passes_nothing():
+    internal, peer = _virtual_pair()
+    adapter = SlcanAdapter(internal, bus_bitrate=500_000)
+    port = serial.Serial(adapter.slave_path, timeout=0.2)
+    try:
+        msg = can.Message(arbitration_id=HB, data=b"\x7f", is_extended_id=False)
+        for setting, passes in ((b"S4\rO\r", False), (b"C\rS6\rO\r", True)):
+            port.write(setting)
+            _wait_readable(adapter)
+            adapter.on_readable(0.0)
+            port.read(setting.count(b"\r"))
+            peer.send(msg)
+            adapter.advance(0.0)
+            port.write(b"t00020110\r")
+            _wait_readable(adapter)
+            adapter.on_readable(0.0)
+            got = port.read(64)
+            assert (b"t71017F\r" in got) == passes, setting
+            assert (peer.recv(timeout=0.2) is not None) == passes, setting
+        assert adapter.stats.wrong_bitrate == 2
+    finally:
+        port.close()
+        adapter.close()
+        internal.shutdown()
+        peer.shutdown()

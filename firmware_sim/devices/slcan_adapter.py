@@ -98,6 +98,7 @@ class AdapterStats:
     dropped_closed: int = 0  # bus frames dropped because the channel was closed
     overruns: int = 0  # bus frames dropped because the client did not read fast enough
     errors: int = 0  # commands answered with BEL
+    wrong_bitrate: int = 0  # frames lost because the channel was opened at another bit rate
 
 
 class SlcanAdapter(Device):
@@ -106,8 +107,17 @@ class SlcanAdapter(Device):
 
     name = "can"
 
-    def __init__(self, internal_bus: can.BusABC, *, backlog_bytes: int = TX_BACKLOG_BYTES) -> None:
+    def __init__(
+        self,
+        internal_bus: can.BusABC,
+        *,
+        bus_bitrate: int | None = None,
+        backlog_bytes: int = TX_BACKLOG_BYTES,
+    ) -> None:
+        """`bus_bitrate`: the bit rate of the emulated bus; if given, a channel opened at another
+        rate passes no frames either way (as on a real bus, where the adapter sees only errors)."""
         self.bus = internal_bus
+        self.bus_bitrate = bus_bitrate
         self.port = PtyPort("slcan", backlog_bytes=backlog_bytes)
         self.bitrate: int | None = None
         self.is_open = False
@@ -152,6 +162,9 @@ class SlcanAdapter(Device):
                 continue
             if not self.is_open:
                 self.stats.dropped_closed += 1
+                continue
+            if self._wrong_bitrate:
+                self.stats.wrong_bitrate += 1
                 continue
             line = encode_frame(msg)
             if len(out) + len(line) > room:  # drop whole frames, never half a line
@@ -217,9 +230,16 @@ class SlcanAdapter(Device):
             msg = decode_frame(line)
         except ValueError:
             return self._error()
-        self.bus.send(msg)
-        self.stats.from_client += 1
+        if self._wrong_bitrate:  # the frame never gets an ACK on a bus at another rate
+            self.stats.wrong_bitrate += 1
+        else:
+            self.bus.send(msg)
+            self.stats.from_client += 1
         return b"Z\r" if msg.is_extended_id else b"z\r"
+
+    @property
+    def _wrong_bitrate(self) -> bool:
+        return self.bus_bitrate is not None and self.bitrate is not None and self.bitrate != self.bus_bitrate
 
     def _error(self) -> bytes:
         self.stats.errors += 1
