@@ -1,0 +1,518 @@
+"""Swaying-base gyrocompass: true north from a strapdown IMU on a rolling ship (inertial frame).
+
+The method of the second seed paper (shared/papers/swaying-base-inertial-frame-north-finding,
+"New north finding algorithm for strapdown compass based on FOG"; abstract steps 1–3), with
+the improvements documented in docs/swaying.md:
+
+1. fix the initial body-inertial frame i_b0 (= the IMU case frame at the first sample) and
+   propagate C_b^{i_b0}(t) from the gyro delta angles with a coning correction — a log-depth
+   parallel-prefix quaternion product, no per-sample Python loop;
+2. carry the specific force into i_b0 as velocity increments (rotation + sculling compensated)
+   and smooth them with a Blackman–Harris kernel that rejects the periodic sway, heave and
+   lever-arm accelerations; in i_b0 the smoothed specific force is gravity turning on a cone
+   about the Earth's axis (paper abstract, step 2);
+3. fit that cone: ``method="cone"`` (default) solves Wahba's problem between the smoothed
+   vectors and the known cone (half-angle 90° − L, rate Ωe) — three unknowns;
+   ``method="circle"`` is the paper's free space-circle fit (plane normal by SVD = Earth axis);
+4. project the Earth axis on the horizontal plane at the end of the window: true north; the
+   attitude at t_end is C_{i_b0}^{n}(t_end)·C_b^{i_b0}(t_end) (paper abstract, step 3).
+
+The 1σ comes from propagating the gyro and accelerometer white noise (measured from the data
+itself, see `white_noise_density`) and optional bias priors through the fit (docs/swaying.md §5).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from northfinder.constants import (
+    DEG,
+    DPH,
+    OMEGA_EARTH_RAD_S,
+    STANDARD_GRAVITY_M_S2,
+    normal_gravity_m_s2,
+    wrap_deg_180,
+)
+from northfinder.errors import InputError
+from northfinder.rotations import coning_corrected_rotvec, euler_from_dcm, skew
+
+__all__ = [
+    "SwayingSolution",
+    "align_swaying",
+    "align_swaying_block",
+    "attitude_quaternions",
+    "quat_prefix_product",
+    "quat_to_dcm",
+    "velocity_increments_ib0",
+    "white_noise_density",
+    "minimum_duration_s",
+]
+
+KVH_GYRO_RANGE_DPS = 490.0
+"""Gyro input range assumed by default: ±490 °/s (KVH 1750/1760/1775)."""
+KVH_ACCEL_RANGE_G = 10.0
+"""Accelerometer range assumed by default: ±10 g (KVH 1750)."""
+_BH4 = (0.35875, 0.48829, 0.14128, 0.01168)  # Blackman–Harris 4-term coefficients
+_BH4_MAIN_LOBE_BINS = 4.0  # half-width of its main lobe in 1/L_w; side lobes below −92 dB
+
+
+# ---------------------------------------------------------------------------------------------
+# Step 1: attitude of the body in the initial body-inertial frame
+# ---------------------------------------------------------------------------------------------
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a⊗b, batched; composes like DCMs: C(a⊗b) = C(a)·C(b)."""
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def _quat_from_rotvec(phi: np.ndarray) -> np.ndarray:
+    """Unit quaternion of rotation vector φ: [cos(|φ|/2), sin(|φ|/2)·φ/|φ|]."""
+    angle = np.linalg.norm(phi, axis=-1)
+    half = 0.5 * angle
+    small = angle < 1e-6
+    k = np.where(small, 0.5 - angle**2 / 48.0, np.sin(half) / np.where(small, 1.0, angle))
+    return np.concatenate([np.cos(half)[..., None], k[..., None] * phi], axis=-1)
+
+
+def quat_prefix_product(dq: np.ndarray) -> np.ndarray:
+    """Ordered prefix products q_k = dq_0⊗dq_1⊗…⊗dq_k along axis 0 (Hillis–Steele scan).
+
+    log2(n) vectorized passes instead of n sequential products: 300 000 samples take 19 passes.
+    The Hamilton product is associative, so the result equals the sequential recursion up to
+    rounding; the result is renormalized once at the end.
+    """
+    q = np.array(dq, dtype=float, copy=True)
+    n = q.shape[0]
+    step = 1
+    while step < n:
+        q[step:] = _quat_mul(q[:-step], q[step:])
+        step *= 2
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def quat_to_dcm(q: np.ndarray) -> np.ndarray:
+    """Direction cosine matrix of unit quaternion(s) [w, x, y, z]."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """C(q)·v for batched q and v: v + 2w(r×v) + 2r×(r×v), r the vector part."""
+    w = q[..., :1]
+    r = q[..., 1:]
+    t = 2.0 * np.cross(r, v)
+    return v + w * t + np.cross(r, t)
+
+
+def attitude_quaternions(dtheta_rad: np.ndarray) -> np.ndarray:
+    """q_k = C_b(t_k)^{i_b0} for k = 0…n from n gyro delta angles [rad] (q_0 = identity).
+
+    Each interval's rotation vector carries Savage's one-past-sample coning term
+    φ_k = Δθ_k + Δθ_{k−1}×Δθ_k/12 (northfinder.rotations.coning_corrected_rotvec); the chain
+    q_k = q_{k−1}⊗q(φ_k) is evaluated as a parallel prefix product.
+    """
+    dq = _quat_from_rotvec(coning_corrected_rotvec(dtheta_rad))
+    q = np.empty((dq.shape[0] + 1, 4))
+    q[0] = (1.0, 0.0, 0.0, 0.0)
+    q[1:] = quat_prefix_product(dq)
+    return q
+
+
+def velocity_increments_ib0(q: np.ndarray, dtheta_rad: np.ndarray, dv_m_s: np.ndarray) -> np.ndarray:
+    """Velocity increments carried into i_b0 [m/s], one per sample interval.
+
+    Δv_k^{i_b0} = C_b(t_{k−1})^{i_b0}·(Δv_k + ½Δθ_k×Δv_k + (Δθ_{k−1}×Δv_k + Δv_{k−1}×Δθ_k)/12):
+    the rotation compensation and Savage's two-sample sculling term, so that the sum over an
+    interval is the integral of C_b^{i_b0}·f^b even while the body rolls.
+    """
+    corr = dv_m_s + 0.5 * np.cross(dtheta_rad, dv_m_s)
+    corr[1:] += (np.cross(dtheta_rad[:-1], dv_m_s[1:]) + np.cross(dv_m_s[:-1], dtheta_rad[1:])) / 12.0
+    return _quat_rotate(q[:-1], corr)
+
+
+# ---------------------------------------------------------------------------------------------
+# Noise measured from the data
+# ---------------------------------------------------------------------------------------------
+def white_noise_density(increments: np.ndarray, dt_s: float) -> np.ndarray:
+    """White-noise density per axis [unit/√s] of integrated-sensor increments (Δθ or Δv).
+
+    The 4th finite difference removes the smooth sway (a polynomial of degree 3 over five
+    samples) and leaves white noise with variance 70·σ² (1+16+36+16+1); σ is taken from the
+    median absolute deviation so that a few spikes do not inflate it. density = σ/√dt.
+    """
+    d4 = np.diff(np.asarray(increments, dtype=float), n=4, axis=0)
+    mad = np.median(np.abs(d4 - np.median(d4, axis=0)), axis=0)
+    sigma = 1.482602 * mad / np.sqrt(70.0)
+    return sigma / np.sqrt(dt_s)
+
+
+# ---------------------------------------------------------------------------------------------
+# The solution
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SwayingSolution:
+    """Attitude of the IMU case (b frame) at the END of the window, with 1σ and diagnostics."""
+
+    heading_deg: float
+    heading_std_deg: float
+    pitch_deg: float
+    roll_deg: float
+    pitch_std_deg: float
+    roll_std_deg: float
+    duration_device_s: float
+    method: str
+    latitude_deg: float
+    c_b_n: np.ndarray = field(repr=False)
+    """C_b^n at t_end (ENU)."""
+    earth_axis_ib0: np.ndarray = field(repr=False)
+    """Unit Earth-axis direction in the i_b0 frame."""
+    diagnostics: dict = field(default_factory=dict, repr=False)
+
+
+def minimum_duration_s(max_sway_period_s: float) -> float:
+    """Shortest window the fit accepts: two smoothing windows (4 periods each) end to end."""
+    return 2.0 * _BH4_MAIN_LOBE_BINS * max_sway_period_s
+
+
+def _kernel(n: int) -> np.ndarray:
+    """Blackman–Harris 4-term window of n samples normalized to unit sum."""
+    x = 2.0 * np.pi * (np.arange(n) + 0.5) / n
+    w = _BH4[0] - _BH4[1] * np.cos(x) + _BH4[2] * np.cos(2 * x) - _BH4[3] * np.cos(3 * x)
+    return w / w.sum()
+
+
+def _up_n0(t_s: np.ndarray, latitude_rad: float) -> np.ndarray:
+    """Local up at time t expressed in n0 (the ENU frame at t = 0 frozen in inertial space).
+
+    Rodrigues rotation of up = [0,0,1] by Ωe·t about the Earth axis k = [0, cos L, sin L]:
+    u(t) = cos(Ωt)·up + sin(Ωt)·k×up + (1 − cos Ωt)(k·up)·k — the cone of paper step 2.
+    """
+    a = OMEGA_EARTH_RAD_S * np.asarray(t_s, dtype=float)
+    cl, sl = np.cos(latitude_rad), np.sin(latitude_rad)
+    c, s = np.cos(a), np.sin(a)
+    return np.stack([cl * s, (1.0 - c) * sl * cl, c + (1.0 - c) * sl * sl], axis=-1)
+
+
+def _earth_rotation_n0_to_nt(t_s: float, latitude_rad: float) -> np.ndarray:
+    """C_{n0}^{n(t)}: ENU at time t from the frozen ENU at t = 0 (Earth turned by Ωe·t)."""
+    k = np.array([0.0, np.cos(latitude_rad), np.sin(latitude_rad)])
+    a = OMEGA_EARTH_RAD_S * t_s
+    kx = skew(k)
+    r = np.eye(3) + np.sin(a) * kx + (1.0 - np.cos(a)) * (kx @ kx)  # C_{n(t)}^{n0}
+    return r.T
+
+
+def _wahba(f_ib0: np.ndarray, m_n0: np.ndarray) -> np.ndarray:
+    """C_{n0}^{i_b0} minimizing Σ_j |F_j − C·M_j|² (Wahba's problem, Markley's SVD solution).
+
+    B = Σ F_j M_jᵀ = U S Vᵀ → C = U·diag(1, 1, det U·det V)·Vᵀ.
+    """
+    b = f_ib0.T @ m_n0
+    u, _, vt = np.linalg.svd(b)
+    d = np.sign(np.linalg.det(u) * np.linalg.det(vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def _frame_from_axis_and_up(axis: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """C_{i_b0}^{n}: rows east, north, up; north = horizontal projection of the Earth axis."""
+    up = up / np.linalg.norm(up)
+    north = axis - (axis @ up) * up
+    north /= np.linalg.norm(north)
+    east = np.cross(north, up)
+    return np.stack([east, north, up])
+
+
+def _rotate_about(axis: np.ndarray, angle: float, v: np.ndarray) -> np.ndarray:
+    kx = skew(axis)
+    return (np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * (kx @ kx)) @ v
+
+
+def _fit_cone(f_ib0, m_n0, t_end_s, latitude_rad):
+    """Constrained cone fit (docs/swaying.md eq. 6–7): C_{i_b0}^{n(t_end)} and the Earth axis."""
+    c_n0_ib0 = _wahba(f_ib0, m_n0)
+    c_ib0_nt = _earth_rotation_n0_to_nt(t_end_s, latitude_rad) @ c_n0_ib0.T
+    axis = c_n0_ib0 @ np.array([0.0, np.cos(latitude_rad), np.sin(latitude_rad)])
+    return c_ib0_nt, axis
+
+
+def _fit_circle(f_ib0, t_win_s, t_end_s, latitude_rad):
+    """The paper's space-circle fit (abstract, step 2): plane of the gravity directions by SVD.
+
+    The plane normal is the Earth axis, oriented so that gravity turns positively about it; the
+    vertical at t_end is the last direction turned on by Ωe·(t_end − t_last) about that axis.
+    Latitude is only used to reject the sign of a normal that points into the wrong hemisphere.
+    """
+    p = f_ib0 / np.linalg.norm(f_ib0, axis=1, keepdims=True)
+    _, _, vt = np.linalg.svd(p - p.mean(axis=0))
+    axis = vt[-1]
+    if np.cross(p[0], p[-1]) @ axis < 0.0:
+        axis = -axis
+    up_end = _rotate_about(axis, OMEGA_EARTH_RAD_S * (t_end_s - t_win_s[-1]), p[-1])
+    return _frame_from_axis_and_up(axis, up_end), axis
+
+
+def _angles(c_b_n: np.ndarray) -> np.ndarray:
+    h, p, r = euler_from_dcm(c_b_n)
+    return np.array([h, p, r]) / DEG
+
+
+def align_swaying(
+    gyro: np.ndarray,
+    accel_g: np.ndarray,
+    rate_hz: float,
+    latitude_deg: float,
+    *,
+    gyro_is_delta: bool = False,
+    sample_index: np.ndarray | None = None,
+    status: np.ndarray | None = None,
+    method: str = "cone",
+    max_sway_period_s: float = 10.0,
+    height_m: float = 0.0,
+    gyro_bias_dph: float = 0.0,
+    accel_bias_ug: float = 0.0,
+    gyro_range_dps: float = KVH_GYRO_RANGE_DPS,
+    accel_range_g: float = KVH_ACCEL_RANGE_G,
+) -> SwayingSolution:
+    """Heading, pitch, roll of a strapdown IMU on a swaying base at the end of the window.
+
+    Inputs are what the IMU driver delivers (`ImuBlock`): `gyro` [n,3] as rates [rad/s]
+    (`gyro_rad_s`) or, with ``gyro_is_delta``, delta angles [rad] per sample; `accel_g` [n,3]
+    specific force in g (1 g = 9.80665 m/s²) averaged over each sample interval; `rate_hz` the
+    sample rate. `max_sway_period_s` sets the smoothing window (4 periods) that rejects sway;
+    `gyro_bias_dph` / `accel_bias_ug` are 1σ priors of the turn-on biases (they cannot be
+    separated from north and are only added to the reported 1σ; 0 = white noise only).
+    Raises InputError for input that cannot give a meaningful heading.
+    """
+    gyro = np.asarray(gyro, dtype=float)
+    accel_g = np.asarray(accel_g, dtype=float)
+    if gyro.ndim != 2 or gyro.shape[1] != 3 or accel_g.shape != gyro.shape:
+        raise InputError(f"swaying alignment needs gyro and accel arrays of shape [n,3]; got {gyro.shape} "
+                         f"and {accel_g.shape}")
+    if not rate_hz or rate_hz <= 0:
+        raise InputError(f"swaying alignment needs the IMU sample rate; got rate_hz={rate_hz}")
+    if method not in ("cone", "circle"):
+        raise InputError(f"unknown swaying method '{method}': use 'cone' or 'circle'")
+    if not np.isfinite(latitude_deg) or abs(latitude_deg) > 85.0:
+        raise InputError(f"latitude {latitude_deg}° is outside ±85°: near the pole the Earth axis is "
+                         "vertical and has no usable horizontal projection")
+    dt = 1.0 / rate_hz
+    _check_status(status)
+    if not np.all(np.isfinite(gyro)) or not np.all(np.isfinite(accel_g)):
+        raise InputError("IMU data contain NaN or infinite values: check the driver's decoding")
+    if not np.any(accel_g):
+        raise InputError("the IMU delivers no accelerometer data (all zero): the swaying alignment needs "
+                         "a 3-axis accelerometer — use a KVH 1750/1760/1775 with accelerometers")
+    rate = gyro if not gyro_is_delta else gyro / dt
+    peak_dps = np.max(np.abs(rate), axis=0) / DEG
+    if np.any(peak_dps >= 0.999 * gyro_range_dps):
+        ax = "xyz"[int(np.argmax(peak_dps))]
+        raise InputError(f"gyro {ax} reached {peak_dps.max():.1f} °/s, the ±{gyro_range_dps:g} °/s range: "
+                         "the sway saturates the gyro — align in calmer sea or with a wider-range IMU")
+    if np.any(np.abs(accel_g) >= 0.999 * accel_range_g):
+        raise InputError(f"accelerometer reached the ±{accel_range_g:g} g range: the motion saturates it")
+    n_lost = 0
+    if sample_index is not None:
+        rate, accel_g, n_lost = _fill_gaps(np.asarray(sample_index), rate, accel_g)
+    n = rate.shape[0]
+    duration_s = n * dt
+    t_min = minimum_duration_s(max_sway_period_s)
+    if duration_s < t_min:
+        raise InputError(
+            f"window of {duration_s:.1f} s is too short for the swaying alignment: it needs at least "
+            f"{t_min:.0f} s (two smoothing windows of 4 × the {max_sway_period_s:g} s longest sway period); "
+            "use 300 s for ~0.05° with a navigation-grade IMU")
+
+    lat = latitude_deg * DEG
+    g = float(normal_gravity_m_s2(latitude_deg, height_m))
+    dtheta = rate * dt
+    dv = accel_g * (STANDARD_GRAVITY_M_S2 * dt)
+
+    # Step 1: C_b^{i_b0}(t_k), k = 0…n.
+    q = attitude_quaternions(dtheta)
+    # Step 2: velocity increments in i_b0, smoothed by Blackman–Harris windows (hop L_w/4).
+    dv_ib0 = velocity_increments_ib0(q, dtheta, dv)
+    lw = int(round(_BH4_MAIN_LOBE_BINS * max_sway_period_s * rate_hz))
+    hop = max(1, lw // 4)
+    starts = np.arange(0, n - lw + 1, hop)
+    h = _kernel(lw)
+    t_mid = (np.arange(n) + 0.5) * dt
+    idx = starts[:, None] + np.arange(lw)[None, :]
+    f_win = np.einsum("k,jkc->jc", h, dv_ib0[idx]) / dt  # F_j, smoothed specific force in i_b0 [m/s²]
+    t_win = t_mid[idx] @ h  # window centres [s]
+    up_win = np.einsum("k,jkc->jc", h, _up_n0(t_mid[idx], lat))
+    m_win = g * up_win  # M_j, the same smoothing applied to the cone model
+    t_end = duration_s
+    c_b_ib0_end = quat_to_dcm(q[-1])
+
+    def solve(f, dphi_end=None):
+        if method == "cone":
+            c_ib0_nt, axis = _fit_cone(f, m_win, t_end, lat)
+        else:
+            c_ib0_nt, axis = _fit_circle(f, t_win, t_end, lat)
+        tweak = np.eye(3) if dphi_end is None else np.eye(3) - skew(dphi_end)
+        c_b_n = c_ib0_nt @ tweak @ c_b_ib0_end
+        return c_b_n, axis
+
+    c_b_n, axis = solve(f_win)
+    angles = _angles(c_b_n)
+
+    # Noise measured from the data, then propagated through the fit (docs/swaying.md §5).
+    n_gyro = white_noise_density(dtheta, dt)  # rad/√s per body axis
+    n_acc = white_noise_density(dv, dt)  # m/s/√s per body axis
+    std = _propagate(solve, angles, f_win, idx, h, t_win, t_end, dt, q, n_gyro, n_acc,
+                     gyro_bias_dph * DPH, accel_bias_ug * 1e-6 * STANDARD_GRAVITY_M_S2)
+
+    residual = f_win - (c_b_ib0_end @ c_b_n.T @ _earth_rotation_n0_to_nt(t_end, lat) @ m_win.T).T \
+        if method == "cone" else None
+    diag = {
+        "n_samples": n,
+        "lost_samples_filled": n_lost,
+        "rate_hz": rate_hz,
+        "smoothing_window_s": lw * dt,
+        "n_windows": len(starts),
+        "gyro_arw_deg_rt_h": (n_gyro / DEG * 60.0).tolist(),
+        "accel_noise_ug_rt_hz": (n_acc / STANDARD_GRAVITY_M_S2 * 1e6).tolist(),
+        "gyro_peak_dps": peak_dps.tolist(),
+        "earth_axis_elevation_deg": float(np.arcsin(np.clip(axis @ c_b_ib0_end @ c_b_n[2], -1, 1)) / DEG),
+        "fit_residual_rms_ug": (float(np.sqrt(np.mean(residual**2))) / STANDARD_GRAVITY_M_S2 * 1e6
+                                if residual is not None else None),
+    }
+    return SwayingSolution(
+        heading_deg=float(angles[0]),
+        heading_std_deg=float(std[0]),
+        pitch_deg=float(angles[1]),
+        roll_deg=float(angles[2]),
+        pitch_std_deg=float(std[1]),
+        roll_std_deg=float(std[2]),
+        duration_device_s=float(duration_s),
+        method=method,
+        latitude_deg=float(latitude_deg),
+        c_b_n=c_b_n,
+        earth_axis_ib0=axis,
+        diagnostics=diag,
+    )
+
+
+def align_swaying_block(block, rate_hz: float, latitude_deg: float, **kwargs) -> SwayingSolution:
+    """`align_swaying` on an `ImuBlock`-like object (sample_index, gyro_rad_s, accel_g, status)."""
+    return align_swaying(block.gyro_rad_s, block.accel_g, rate_hz, latitude_deg,
+                         sample_index=getattr(block, "sample_index", None),
+                         status=getattr(block, "status", None), **kwargs)
+
+
+def _check_status(status) -> None:
+    """KVH status bits 0–2 gyro x/y/z valid, 4–6 accel x/y/z valid (shared/PROTOCOLS.md §2)."""
+    if status is None:
+        return
+    status = np.asarray(status, dtype=np.int64)
+    if status.size == 0:
+        return
+    accel_valid = (status >> 4) & 0b111
+    gyro_valid = status & 0b111
+    if np.mean(accel_valid == 0b111) < 0.5:
+        raise InputError("the IMU reports no valid accelerometers (status bits 4–6 cleared): the swaying "
+                         "alignment needs a 3-axis accelerometer — use an IMU with accelerometers")
+    if np.mean(gyro_valid == 0b111) < 0.5:
+        raise InputError("the IMU reports fewer than 3 valid gyros (status bits 0–2): the swaying alignment "
+                         "needs a 3-axis gyro")
+
+
+def _fill_gaps(sample_index: np.ndarray, rate: np.ndarray, accel_g: np.ndarray, max_gap: int = 10):
+    """Put samples on the contiguous device index; fill gaps of ≤ max_gap samples linearly."""
+    if sample_index.shape[0] != rate.shape[0]:
+        raise InputError("sample_index and gyro arrays differ in length")
+    steps = np.diff(sample_index)
+    if np.any(steps <= 0):
+        raise InputError("IMU sample_index is not strictly increasing: the block is not one recording")
+    if np.all(steps == 1):
+        return rate, accel_g, 0
+    if steps.max() - 1 > max_gap:
+        raise InputError(f"the IMU lost {int(steps.max() - 1)} consecutive samples inside the window: the "
+                         f"attitude cannot be integrated across a gap longer than {max_gap} samples — "
+                         "record again (check the serial link)")
+    full = np.arange(sample_index[0], sample_index[-1] + 1)
+    out_r = np.stack([np.interp(full, sample_index, rate[:, i]) for i in range(3)], axis=1)
+    out_a = np.stack([np.interp(full, sample_index, accel_g[:, i]) for i in range(3)], axis=1)
+    return out_r, out_a, int(full.size - sample_index.size)
+
+
+def _propagate(solve, angles, f_win, idx, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias, accel_bias):
+    """1σ of heading, pitch, roll by first-order propagation (docs/swaying.md §5).
+
+    Noise sources, all in i_b0: the attitude random walk φ(t) driven by the gyro white noise
+    (Cov φ(s),φ(t) = Q·min(s,t)) and a constant gyro bias prior (φ = b·t); the accelerometer
+    white noise and bias prior. A window sees e_j = [F_j×]Φ_j + A_j with Φ_j = ∫h_j φ; the end
+    attitude sees φ(t_end). Cov(Φ_i, Φ_j) = Q·∫H_i H_j dτ with H_j(τ) = ∫_τ^T h_j (tail
+    integral), because min(s,t) = ∫ 1[τ<s]·1[τ<t] dτ. The Jacobian of the angles with respect
+    to F_j and φ(t_end) is taken by central differences of the fit itself.
+    """
+    m = f_win.shape[0]
+    n = q.shape[0] - 1
+    # Rotate per-axis body noise into i_b0 (the body sways, so average over the record).
+    c = quat_to_dcm(q[1:: max(1, n // 200)])
+    qg = np.einsum("kij,j,klj->il", c, n_gyro**2, c) / c.shape[0]
+    qa = np.einsum("kij,j,klj->il", c, n_acc**2, c) / c.shape[0]  # (m/s²)²·s
+    qb = np.eye(3) * gyro_bias**2
+    qab = np.eye(3) * accel_bias**2
+    # Kernels on a coarse grid of D samples (≥ 20 per window) for the Brownian covariance.
+    d = max(1, idx.shape[1] // 40)
+    n_c = n // d
+    hc = np.zeros((m + 1, n_c + 1))
+    cols = idx // d
+    for j in range(m):
+        np.add.at(hc[j], cols[j], h)
+    tail = np.cumsum(hc[:, ::-1], axis=1)[:, ::-1]  # H_j at the start of each coarse cell
+    tail[m] = 1.0
+    tail[m, n_c:] = 0.0
+    step = d * dt
+    k_phi = tail @ tail.T * step
+    k_phi[m, m] = t_end
+    t_all = np.append(t_win, t_end)
+    k_acc = hc[:m] @ hc[:m].T / step
+    cov_phi = np.kron(k_phi, qg) + np.kron(np.outer(t_all, t_all), qb)
+    cov_acc = np.kron(k_acc, qa) + np.kron(np.ones((m, m)), qab)
+
+    # Jacobians by central differences (3m + 3 evaluations of a closed-form fit).
+    scale_f = 1e-6 * np.linalg.norm(f_win[0])
+    scale_p = 1e-6
+    jac_f = np.zeros((3, 3 * m))
+    jac_p = np.zeros((3, 3))
+    for j in range(m):
+        for a in range(3):
+            df = np.zeros_like(f_win)
+            df[j, a] = scale_f
+            jac_f[:, 3 * j + a] = _angle_diff(_angles(solve(f_win + df)[0]), _angles(solve(f_win - df)[0])) \
+                / (2 * scale_f)
+    for a in range(3):
+        dp = np.zeros(3)
+        dp[a] = scale_p
+        jac_p[:, a] = _angle_diff(_angles(solve(f_win, dp)[0]), _angles(solve(f_win, -dp)[0])) / (2 * scale_p)
+    s = np.zeros((3 * m, 3 * m))
+    for j in range(m):
+        s[3 * j: 3 * j + 3, 3 * j: 3 * j + 3] = skew(f_win[j])
+    g_map = np.hstack([jac_f @ s, jac_p])
+    cov = g_map @ cov_phi @ g_map.T + jac_f @ cov_acc @ jac_f.T
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+def _angle_diff(a_deg: np.ndarray, b_deg: np.ndarray) -> np.ndarray:
+    """a − b in degrees, wrapped to [−180, 180) (heading crosses 0/360)."""
+    return wrap_deg_180(np.asarray(a_deg) - np.asarray(b_deg))

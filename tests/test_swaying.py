@@ -1,0 +1,260 @@
+"""Swaying-base gyrocompass (northfinder.align.swaying) and its static baseline (align.coarse).
+
+Data come from the independent forward model in tests/test_swaying_forward.py (closed-form
+ship motion, quadrature increments, white noise at the grade's ARW). Fixed seeds; tolerances
+come from the noise limit and from the physics stated next to each assertion.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_swaying_forward import (
+    D2R,
+    GRADES,
+    OMEGA_E,
+    REFERENCE,
+    STILL,
+    Sway,
+    SwayingShip,
+    heading_deg,
+    simulate_imu,
+)
+
+from northfinder.align.coarse import coarse_align
+from northfinder.align.swaying import (
+    align_swaying,
+    align_swaying_block,
+    attitude_quaternions,
+    minimum_duration_s,
+    quat_prefix_product,
+    quat_to_dcm,
+    white_noise_density,
+)
+from northfinder.constants import wrap_deg_180
+from northfinder.errors import InputError
+
+LAT = 40.0
+RATE_HZ = 50.0  # enough for 6–10 s sway; keeps 50 Monte Carlo runs of 300 s inside the budget
+T_S = 300.0
+N_RUNS = 50
+
+
+def _run(seed: int, sway: Sway, grade_name: str, duration_s: float = T_S, lat: float = LAT):
+    rng = np.random.default_rng(seed)
+    ship = SwayingShip(rng.uniform(0.0, 360.0), lat, sway, rng.uniform(0.0, 2 * np.pi, 4))
+    grade = GRADES[grade_name]
+    gyro, accel = simulate_imu(ship, duration_s, RATE_HZ, grade, rng)
+    truth = heading_deg(ship.c_b_n(np.array(duration_s)))
+    return ship, gyro, accel, truth, grade
+
+
+def _monte_carlo(sway: Sway, grade_name: str, n_runs: int, seed0: int):
+    sw_err, sw_std, co_err, co_std, diff = [], [], [], [], []
+    for i in range(n_runs):
+        _, gyro, accel, truth, grade = _run(seed0 + i, sway, grade_name)
+        sol = align_swaying(gyro, accel, RATE_HZ, LAT, gyro_bias_dph=grade.gyro_bias_dph,
+                            accel_bias_ug=grade.accel_bias_ug)
+        co = coarse_align(gyro, accel, RATE_HZ, LAT)
+        sw_err.append(wrap_deg_180(sol.heading_deg - truth))
+        sw_std.append(sol.heading_std_deg)
+        co_err.append(wrap_deg_180(co.heading_deg - truth))
+        co_std.append(co.heading_std_deg)
+        diff.append(wrap_deg_180(sol.heading_deg - co.heading_deg))
+    return {k: np.asarray(v, dtype=float) for k, v in
+            dict(sw_err=sw_err, sw_std=sw_std, co_err=co_err, co_std=co_std, diff=diff).items()}
+
+
+@pytest.fixture(scope="module")
+def reference_mc():
+    return _monte_carlo(REFERENCE, "nav", N_RUNS, seed0=5000)
+
+
+@pytest.fixture(scope="module")
+def still_mc():
+    return _monte_carlo(STILL, "nav", 20, seed0=7000)
+
+
+def _noise_limit_deg(grade, duration_s: float, lat: float = LAT) -> float:
+    """find's limit σψ = N/(Ωe·cos L)·√(2/T) (docs/CONVENTIONS.md)."""
+    n = grade.arw_deg_rt_h * D2R / 60.0
+    return np.degrees(n / (OMEGA_E * np.cos(lat * D2R)) * np.sqrt(2.0 / duration_s))
+
+
+def _bias_floor_deg(grade, lat: float = LAT) -> float:
+    """εE/(Ωe·cos L) for a 1σ turn-on bias εE."""
+    return np.degrees(grade.gyro_bias_dph * D2R / 3600.0 / (OMEGA_E * np.cos(lat * D2R)))
+
+
+# --- the must-show figures ------------------------------------------------------------------
+def test_reference_scenario_nav_grade_beats_0p10_deg(reference_mc):
+    """Reference sway, nav grade, 50 runs, 300 s: σψ ≤ 0.10° (the issue's target)."""
+    err = reference_mc["sw_err"]
+    sigma = err.std(ddof=1)
+    print(f"\nswaying cone fit, nav, 300 s, {N_RUNS} runs: σψ = {sigma:.4f}°, mean = {err.mean():+.4f}°, "
+          f"mean reported 1σ = {reference_mc['sw_std'].mean():.4f}°")
+    assert sigma <= 0.10
+    # The sample mean of 50 runs is unbiased within 4 standard errors.
+    assert abs(err.mean()) <= 4.0 * sigma / np.sqrt(N_RUNS)
+
+
+def test_reported_sigma_matches_monte_carlo_scatter(reference_mc):
+    """The propagated 1σ agrees with the scatter: for 50 runs the sample σ has a ±10 % standard
+    error, so the ratio must lie in [0.7, 1.4] (3 standard errors, plus room for the sway leakage
+    that the propagation does not model)."""
+    ratio = reference_mc["sw_err"].std(ddof=1) / np.sqrt(np.mean(reference_mc["sw_std"] ** 2))
+    assert 0.7 <= ratio <= 1.4, ratio
+    # And 1σ is not just a constant: it follows the grade's noise limit plus the bias floor.
+    grade = GRADES["nav"]
+    expected = np.hypot(_noise_limit_deg(grade, T_S), _bias_floor_deg(grade))
+    assert 0.5 * expected <= reference_mc["sw_std"].mean() <= 2.0 * expected
+
+
+def test_static_coarse_alignment_fails_under_sway(reference_mc):
+    """Same data: the static TRIAD loses north. Physics: the mean sway rate over 300 s of a
+    10°/8 s roll is up to A·ω/(ω·T) ≈ 6e-4 rad/s ≈ 8·Ωe, so the east direction is random."""
+    co = reference_mc["co_err"]
+    sw = reference_mc["sw_err"]
+    rms_co = np.sqrt(np.mean(co**2))
+    print(f"\nstatic coarse on the same data: rms ψ error = {rms_co:.2f}°, σψ = {co.std(ddof=1):.2f}°, "
+          f"swaying rms = {np.sqrt(np.mean(sw**2)):.4f}°")
+    assert rms_co > 10.0
+    assert rms_co > 100.0 * np.sqrt(np.mean(sw**2))
+
+
+def test_still_ship_agrees_with_noise_limit_and_coarse(still_mc):
+    """No sway: both methods reach the gyrocompass noise level (order of magnitude of find's limit
+    ⊕ the bias floor) and agree with each other within their combined 1σ."""
+    grade = GRADES["nav"]
+    limit = np.hypot(_noise_limit_deg(grade, T_S), _bias_floor_deg(grade))
+    s_sw = np.sqrt(np.mean(still_mc["sw_err"] ** 2))
+    s_co = np.sqrt(np.mean(still_mc["co_err"] ** 2))
+    print(f"\nstill ship, nav, 300 s: swaying rms {s_sw:.4f}°, coarse rms {s_co:.4f}°, "
+          f"find limit ⊕ bias floor {limit:.4f}°")
+    assert limit / 3.0 <= s_sw <= 3.0 * limit
+    assert limit / 3.0 <= s_co <= 3.0 * limit
+    combined = np.sqrt(still_mc["sw_std"] ** 2 + still_mc["co_std"] ** 2)
+    # Both see the same bias, so their difference is bounded by the white-noise parts: 4σ.
+    assert np.all(np.abs(still_mc["diff"]) <= 4.0 * combined)
+
+
+# --- pieces ---------------------------------------------------------------------------------
+def test_parallel_prefix_equals_sequential_product():
+    rng = np.random.default_rng(1)
+    phi = rng.normal(0, 0.3, (1000, 3))
+    q = attitude_quaternions(phi)
+    c = np.eye(3)
+    from northfinder.rotations import coning_corrected_rotvec, rotvec_to_dcm
+
+    for p in coning_corrected_rotvec(phi):
+        c = c @ rotvec_to_dcm(p)
+    assert np.allclose(quat_to_dcm(q[-1]), c, atol=1e-12)
+    assert quat_prefix_product(np.array([[1.0, 0, 0, 0]])).shape == (1, 4)
+
+
+def test_attitude_matches_closed_form_with_coning():
+    """300 s of reference sway at 50 Hz: C_b^{i_b0}(T) from the increments against the exact
+    C_b0^n(0)ᵀ·C_n(T)^{n0}·C_b^n(T). The coning term leaves O(ω³·dt²) drift: bound 1e-7 rad."""
+    ship = SwayingShip(10.0, LAT, REFERENCE, (0.3, 1.0, 2.0, 0.5))
+    n = int(T_S * RATE_HZ)
+    dth, _ = ship.increments(n, RATE_HZ)
+    q = attitude_quaternions(dth)
+    k = np.array([0.0, np.cos(ship.lat), np.sin(ship.lat)])
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    a = OMEGA_E * T_S
+    r = np.eye(3) + np.sin(a) * kx + (1 - np.cos(a)) * kx @ kx
+    truth = ship.c_b_n(np.array(0.0)).T @ r @ ship.c_b_n(np.array(T_S))
+    e = truth.T @ quat_to_dcm(q[-1])
+    assert np.max(np.abs(e - np.eye(3))) < 1e-7
+
+
+def test_noise_density_is_measured_from_swaying_data():
+    """ARW and accel noise recovered from the data within 5 % (σ of a MAD estimate over 15 000
+    samples is ~1 %), despite the sway."""
+    _, gyro, accel, _, grade = _run(11, REFERENCE, "kvh1760")
+    dt = 1.0 / RATE_HZ
+    arw = white_noise_density(gyro * dt, dt) * 60.0 / D2R
+    acc = white_noise_density(accel * dt, dt) * 1e6
+    assert np.allclose(arw, grade.arw_deg_rt_h, rtol=0.05)
+    assert np.allclose(acc, grade.accel_noise_ug_rt_hz, rtol=0.05)
+
+
+def test_noise_free_error_is_sway_leakage_only():
+    """Perfect sensors: what is left is the smoothing's sway leakage — well under 0.02°; pitch and
+    roll at t_end match the closed form to 0.01°. Also the southern hemisphere."""
+    for lat in (LAT, -35.0):
+        ship, gyro, accel, truth, _ = _run(21, REFERENCE, "perfect", lat=lat)
+        sol = align_swaying(gyro, accel, RATE_HZ, lat)
+        _, pitch, roll = ship.euler(np.array(T_S))
+        assert abs(wrap_deg_180(sol.heading_deg - truth)) < 0.02
+        assert sol.pitch_deg == pytest.approx(np.degrees(pitch), abs=0.01)
+        assert sol.roll_deg == pytest.approx(np.degrees(roll), abs=0.01)
+        assert sol.diagnostics["earth_axis_elevation_deg"] == pytest.approx(lat, abs=0.5)
+
+
+def test_imu_block_input_and_lost_samples_filled():
+    """An ImuBlock-like object with a 3-sample gap gives the same heading as the full record."""
+    _, gyro, accel, _, _ = _run(31, REFERENCE, "nav", duration_s=120.0)
+    full = align_swaying(gyro, accel, RATE_HZ, LAT)
+
+    class Block:
+        pass
+
+    keep = np.ones(gyro.shape[0], bool)
+    keep[3000:3003] = False
+    b = Block()
+    b.sample_index = np.arange(gyro.shape[0])[keep] + 77
+    b.gyro_rad_s, b.accel_g = gyro[keep], accel[keep]
+    b.status = np.full(keep.sum(), 0x77, np.uint8)
+    sol = align_swaying_block(b, RATE_HZ, LAT)
+    assert sol.diagnostics["lost_samples_filled"] == 3
+    assert abs(wrap_deg_180(sol.heading_deg - full.heading_deg)) < 0.1 * full.heading_std_deg
+
+
+def test_paper_circle_fit_runs_and_is_worse_than_cone():
+    """The free space-circle fit of the paper on the same noise-free data: it must find north
+    (within a few degrees) but the constrained cone fit must be closer."""
+    _, gyro, accel, truth, _ = _run(41, REFERENCE, "perfect")
+    circle = align_swaying(gyro, accel, RATE_HZ, LAT, method="circle")
+    cone = align_swaying(gyro, accel, RATE_HZ, LAT, method="cone")
+    e_circle = abs(wrap_deg_180(circle.heading_deg - truth))
+    e_cone = abs(wrap_deg_180(cone.heading_deg - truth))
+    assert e_circle < 5.0
+    assert e_cone < e_circle
+
+
+# --- bad input: one clear line ----------------------------------------------------------------
+def _one_line(exc: pytest.ExceptionInfo) -> str:
+    msg = str(exc.value)
+    assert "\n" not in msg and len(msg) < 300
+    return msg
+
+
+def test_sway_that_saturates_the_gyro():
+    violent = Sway(roll_deg=30.0, roll_period_s=0.35)  # peak rate 30°·2π/0.35 s ≈ 540 °/s > 490 °/s
+    _, gyro, accel, _, _ = _run(51, violent, "perfect", duration_s=90.0)
+    with pytest.raises(InputError) as exc:
+        align_swaying(gyro, accel, RATE_HZ, LAT)
+    msg = _one_line(exc)
+    assert "490" in msg and "saturat" in msg
+
+
+def test_too_short_says_how_long_is_needed():
+    _, gyro, accel, _, _ = _run(52, REFERENCE, "nav", duration_s=60.0)
+    with pytest.raises(InputError) as exc:
+        align_swaying(gyro, accel, RATE_HZ, LAT)
+    msg = _one_line(exc)
+    assert f"{minimum_duration_s(10.0):.0f} s" in msg and "60.0 s" in msg
+
+
+def test_imu_without_accelerometers():
+    _, gyro, accel, _, _ = _run(53, REFERENCE, "nav", duration_s=90.0)
+    with pytest.raises(InputError) as exc:
+        align_swaying(gyro, np.zeros_like(accel), RATE_HZ, LAT)
+    assert "accelerometer" in _one_line(exc)
+    status = np.full(gyro.shape[0], 0x07, np.uint8)  # gyro valid bits only (PROTOCOLS.md §2)
+    with pytest.raises(InputError) as exc:
+        align_swaying(gyro, accel, RATE_HZ, LAT, status=status)
+    assert "accelerometer" in _one_line(exc)
+    with pytest.raises(InputError):
+        coarse_align(gyro, np.zeros_like(accel), RATE_HZ, LAT)
