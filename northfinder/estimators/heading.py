@@ -133,36 +133,30 @@ def _std_for(std, n: int, three: bool, name: str) -> np.ndarray | None:
     return sd[:, :2] if three else sd[:, None]
 
 
-def _up_vector(fx, fy, fz, g_local_g: float) -> np.ndarray:
-    """u^p from the platform specific force: f/|f| (3-axis) or [f_x, f_y, √(g²−f_x²−f_y²)]/g."""
-    if fz is None:
-        h2 = fx**2 + fy**2
-        fz = np.sqrt(np.clip(g_local_g**2 - h2, 0.0, None))
-        return np.stack([fx, fy, fz], axis=-1) / g_local_g
-    f = np.stack(np.broadcast_arrays(fx, fy, fz), axis=-1)
-    return f / np.linalg.norm(f, axis=-1, keepdims=True)
+def _up_vector(fx, fy, g_local_g: float) -> np.ndarray:
+    """u^p = [f_x, f_y, √(g² − f_x² − f_y²)] / g from the fitted platform specific force.
+
+    Only the modulated x/y components enter (their biases are fitted away, eq 5); the b-z
+    accelerometer, whose bias cannot be separated, is used only to check |f| and that z is up.
+    """
+    fz = np.sqrt(np.clip(g_local_g**2 - fx**2 - fy**2, 0.0, None))
+    return np.stack(np.broadcast_arrays(fx, fy, fz), axis=-1) / g_local_g
 
 
-def _heading_rad(method: str, wx, wy, fx, fy, fz, g_local_g: float, omega_h: float) -> np.ndarray:
-    return METHODS[method](wx, wy, _up_vector(fx, fy, fz, g_local_g), omega_h)
-
-
-def _heading_std_rad(method, params, cov, has_fz, g_local_g, omega_h) -> np.ndarray:
-    """√(Jᵀ Σ J) with J by central differences of the method's heading over (w_x, w_y, f…)."""
-    steps = np.array([1e-4 * OMEGA_EARTH_RAD_S, 1e-4 * OMEGA_EARTH_RAD_S, 1e-6, 1e-6, 1e-6])
-    k = 5 if has_fz else 4
-    jac = np.empty(params.shape[:-1] + (k,))
-    for j in range(k):
+def _heading_std_rad(method, params, cov, g_local_g, omega_h) -> np.ndarray:
+    """√(Jᵀ Σ J), J by central differences of the method's heading over (w_x, w_y, f_x, f_y)."""
+    steps = np.array([1e-4 * OMEGA_EARTH_RAD_S, 1e-4 * OMEGA_EARTH_RAD_S, 1e-6, 1e-6])
+    jac = np.empty(params.shape)
+    for j in range(4):
         hi, lo = params.copy(), params.copy()
         hi[..., j] += steps[j]
         lo[..., j] -= steps[j]
-        args_hi = [hi[..., i] for i in range(4)] + [hi[..., 4] if has_fz else None]
-        args_lo = [lo[..., i] for i in range(4)] + [lo[..., 4] if has_fz else None]
-        d = _heading_rad(method, *args_hi, g_local_g, omega_h) - _heading_rad(
-            method, *args_lo, g_local_g, omega_h
+        d = METHODS[method](hi[..., 0], hi[..., 1], _up_vector(hi[..., 2], hi[..., 3], g_local_g), omega_h)
+        d = d - METHODS[method](
+            lo[..., 0], lo[..., 1], _up_vector(lo[..., 2], lo[..., 3], g_local_g), omega_h
         )
         jac[..., j] = (np.mod(d + np.pi, 2.0 * np.pi) - np.pi) / (2.0 * steps[j])
-    return np.sqrt(np.einsum("...i,...ij,...j->...", jac, cov[..., :k, :k], jac))
+    return np.sqrt(np.einsum("...i,...ij,...j->...", jac, cov, jac))
 
 
 def solve_batch(
@@ -224,16 +218,11 @@ def solve_batch(
     g_local_g = float(normal_gravity_m_s2(lat, height_m)) / STANDARD_GRAVITY_M_S2
     fx, fy = accel_fit.coef("v_x"), accel_fit.coef("v_y")
     trials = gyro.shape[0]
-    cov = np.zeros((trials, 5, 5))
+    cov = np.zeros((trials, 4, 4))
     cov[:, :2, :2] = gyro_fit.covariance[:, :2, :2] * DPH**2
     cov[:, 2:4, 2:4] = accel_fit.covariance[:, :2, :2]
     if accel3:
-        fz_pos = accel[..., 2]
-        fz = fz_pos.mean(axis=-1)
-        if accel_std_g is not None:
-            cov[:, 4, 4] = np.sum(np.asarray(accel_std_g, dtype=float)[:, 2] ** 2) / n**2
-        else:
-            cov[:, 4, 4] = fz_pos.var(axis=-1, ddof=1) / n
+        fz = accel[..., 2].mean(axis=-1)
         mag = np.sqrt(fx**2 + fy**2 + fz**2)
         bad = np.abs(mag / g_local_g - 1.0) > accel_tolerance
         if np.any(bad):
@@ -245,7 +234,6 @@ def solve_batch(
         if np.any(fz <= 0.0):
             raise InputError("accel_g: the z axis reads negative gravity; mount the instrument z-up")
     else:
-        fz = None
         mag = np.sqrt(fx**2 + fy**2)
         if np.any(mag >= g_local_g):
             m = float(mag.max())
@@ -253,7 +241,7 @@ def solve_batch(
                 f"accel_g: the b-y accelerometer swings by {m:.4g} g, not below the local gravity "
                 f"{g_local_g:.5f} g; pass the means in g and keep the base still"
             )
-    up = _up_vector(fx, fy, fz, g_local_g)
+    up = _up_vector(fx, fy, g_local_g)
     pitch, roll = pitch_roll_from_up(up)
     tilt = np.arccos(np.clip(up[..., 2], -1.0, 1.0))
     if np.any(np.rad2deg(tilt) > tilt_limit_deg):
@@ -275,8 +263,7 @@ def solve_batch(
 
     headings = {name: np.rad2deg(fn(wx, wy, up, omega_h)) for name, fn in METHODS.items()}
     psi = np.deg2rad(headings[method])
-    params = np.stack([wx, wy, fx, fy, fz if fz is not None else np.zeros_like(fx)], axis=-1)
-    std = _heading_std_rad(method, params, cov, accel3, g_local_g, omega_h)
+    std = _heading_std_rad(method, np.stack([wx, wy, fx, fy], axis=-1), cov, g_local_g, omega_h)
     _, tilt_az = tilt_and_azimuth(psi, pitch, roll)
     return BatchSolution(
         method=method,
