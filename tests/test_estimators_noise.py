@@ -13,11 +13,11 @@ import itertools
 
 import numpy as np
 import pytest
+from test_estimators import attitude, body_means, wrap180
 
 from northfinder.estimators import montecarlo as mc
 from northfinder.estimators.heading import solve_batch
 from northfinder.estimators.limits import noise_limit_heading_std_deg, per_position_std_dph
-from tests.test_estimators import attitude, body_means, wrap180
 
 TRIALS = 4000
 HEADING_DEG, TILT_AZ_DEG = 30.0, 90.0  # tilt azimuth 90° relative to north: the largest k
