@@ -206,15 +206,13 @@ class _Loop:
         self.adapter_bus.shutdown()
 
     def _run(self) -> None:
-        fd = self.adapter.fileno()
         try:
             while not self._stop.is_set():
-                readable, _, _ = select.select([fd], [], [], 0.001)
+                fd = self.adapter.fileno()  # None while no client has the port open
+                readable, _, _ = select.select([fd] if fd is not None else [], [], [], 0.001)
                 t = self.clock.now()
                 if readable:
                     self.adapter.on_readable(t)
-                    if not self.adapter.port.connected:
-                        time.sleep(0.001)  # no client: the master polls hang-up, do not spin
                 if self.powered or self.adapter.is_open:
                     self.powered = True
                     self.node.advance(t)
@@ -361,6 +359,31 @@ def test_channel_opened_at_the_wrong_bitrate_passes_nothing():
         assert adapter.stats.wrong_bitrate == 2
     finally:
         port.close()
+        adapter.close()
+        internal.shutdown()
+        peer.shutdown()
+
+
+def test_no_client_no_fd_to_watch_and_a_vanished_client_closes_the_channel():
+    internal, peer = _virtual_pair()
+    adapter = SlcanAdapter(internal)
+    try:
+        assert adapter.fileno() is None  # a client-less master polls hang-up: not watched
+        port = serial.Serial(adapter.slave_path, timeout=0.5)
+        assert adapter.fileno() is not None
+        port.write(b"O\r")
+        _wait_readable(adapter)
+        adapter.on_readable(0.0)
+        assert adapter.is_open
+        port.close()  # gone without `C`
+        peer.send(can.Message(arbitration_id=HB, data=b"\x05", is_extended_id=False))
+        adapter.advance(0.0)
+        assert not adapter.is_open and adapter.stats.dropped_closed == 1
+        assert adapter.fileno() is None
+        port = serial.Serial(adapter.slave_path, timeout=0.2)  # the next client starts clean
+        assert port.read(16) == b""
+        port.close()
+    finally:
         adapter.close()
         internal.shutdown()
         peer.shutdown()

@@ -132,7 +132,11 @@ class SlcanAdapter(Device):
 
     # -- Device surface --------------------------------------------------------------------
     def fileno(self) -> int | None:
-        return None if self._closed else self.port.fileno()
+        """The pty master while a client has the port open; None otherwise, because a master
+        without a client polls readable (hang-up) all the time and would spin the loop."""
+        if self._closed or not self.port.connected:
+            return None
+        return self.port.fileno()
 
     def endpoint(self) -> dict[str, Any]:
         return {"interface": "slcan", "channel": self.port.path}
@@ -146,15 +150,15 @@ class SlcanAdapter(Device):
         reply = self._handle_lines()
         if reply:
             self.port.write(reply)
-        if not self.port.connected and self.is_open:
-            # the client went away without `C`: a real adapter would keep its channel open, but
-            # nobody reads it; close it so stale frames do not greet the next client
-            self.is_open = False
 
     def advance(self, t_device_s: float) -> None:
         """Forward every frame waiting on the internal bus (if open), then write what is owed."""
         if self._closed:
             return
+        if self.is_open and not self.port.connected:
+            # the client went away without `C`: nobody reads the channel; close it so that stale
+            # frames do not greet the next client
+            self.is_open = False
         out = bytearray()
         room = self.port.backlog_bytes - self.port.pending
         while (msg := self.bus.recv(timeout=0)) is not None:
