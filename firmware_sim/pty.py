@@ -58,6 +58,9 @@ class PtyPort:
         self._pending = bytearray()
         self.bytes_written = 0
         self.bytes_dropped = 0
+        """Overrun: bytes a connected client was too slow to take."""
+        self.bytes_unheard = 0
+        """Bytes sent while no client had the port open."""
         self.bytes_read = 0
         self.closed = False
         log.debug("%s: opened %s", name, self.path)
@@ -94,7 +97,7 @@ class PtyPort:
         if self.closed or not data:
             return
         if not self.connected:
-            self.bytes_dropped += len(data) + len(self._pending)
+            self.bytes_unheard += len(data) + len(self._pending)
             self._pending.clear()
             return
         room = self.backlog_bytes - len(self._pending)

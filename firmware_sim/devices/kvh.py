@@ -286,7 +286,7 @@ class KvhImu(Device):
         if self.silence is not None:
             start, duration = self.silence
             t_end = t0 + dt * np.arange(1, n + 1)
-            keep &= ~((t_end >= start) & (t_end < start + duration))
+            keep &= ~((t_end >= start - 1e-9) & (t_end < start + duration - 1e-9))
         if self._down_until_s is not None or self.port.closed:
             keep[:] = False
         if not keep.any():

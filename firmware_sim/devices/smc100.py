@@ -41,6 +41,8 @@ DISABLE_FROM_MOVING = 0x3D
 ERR_FOLLOWING = 1 << 5
 
 SOFT_LIMITS_DEG = (-360.0, 360.0)
+STALL_FRACTION = 0.5
+"""Fault stage-stall: the stage jams after this fraction of the move's distance."""
 
 
 def is_not_referenced(state: int) -> bool:
@@ -135,9 +137,9 @@ def parse_reply(line: bytes | str) -> tuple[int, str, str]:
 class Smc100(Device):
     """The controller on its own pty, driving `world.table`.
 
-    `stall_move` (fault stage-stall=N): the N-th PA/PR since start stops half-way through its
-    plan, with the following-error bit set and the state DISABLE (from MOVING), as a real stage
-    that jams.
+    `stall_move` (fault stage-stall=N): the N-th PA/PR since start jams half-way (the table
+    physics stops it short), then the following-error bit is set and the state is DISABLE
+    (from MOVING), as on a real stage that jams. `MM1` (or `RS` and `OR`) recovers.
     """
 
     name = "turntable"
@@ -161,7 +163,7 @@ class Smc100(Device):
         self.limits_deg = list(self.default_limits_deg)
         self.target_deg: float | None = None
         self._end_s: float | None = None  # planned end of the current homing/move/stop
-        self._stall_at_s: float | None = None
+        self._stalling = False
 
     # -- Device surface ---------------------------------------------------------------------
     def fileno(self) -> int | None:
@@ -188,22 +190,20 @@ class Smc100(Device):
                 self.handle_line(line, t_device_s)
 
     def advance(self, t_device_s: float) -> None:
-        t = t_device_s
-        if self._stall_at_s is not None and t >= self._stall_at_s:
-            t_stall = self._stall_at_s
-            self._stall_at_s = None
-            self._stop_table(t_stall)
-            self._end_s = None
-            self.errors |= ERR_FOLLOWING
-            self.state = DISABLE_FROM_MOVING
-            self.target_deg = self._encoder_deg(t)
-            log.info("stage stalled at t=%.3f s (move %d): following error, DISABLE", t_stall, self.moves)
-        if self._end_s is not None and t >= self._end_s and not self._table_moving(t):
-            self._end_s = None
-            if self.state == HOMING:
-                self.state = READY_FROM_HOMING
-                self.target_deg = 0.0
-            elif self.state == MOVING:
+        if self._end_s is None or t_device_s < self._end_s:
+            return
+        self._end_s = None
+        if self.state == HOMING:
+            self.state = READY_FROM_HOMING
+            self.target_deg = 0.0
+        elif self.state == MOVING:
+            if self._stalling:
+                self._stalling = False
+                self.errors |= ERR_FOLLOWING
+                self.state = DISABLE_FROM_MOVING
+                self.target_deg = self._encoder_deg(t_device_s)
+                log.info("stage stalled (move %d): following error, DISABLE", self.moves)
+            else:
                 self.state = READY_FROM_MOVING
 
     # -- commands -----------------------------------------------------------------------------
@@ -259,8 +259,8 @@ class Smc100(Device):
         self._reply("VE", f" SMC100CC firmware_sim {__version__}")
 
     def _cmd_rs(self, cmd: SmcCommand, t: float) -> None:
-        if self._end_s is not None or self.state in (MOVING, HOMING):
-            self._stop_table(t)
+        if self._end_s is not None:
+            self.table.stop(t)
         self._reset_state()
 
     def _cmd_or(self, cmd: SmcCommand, t: float) -> None:
@@ -272,7 +272,7 @@ class Smc100(Device):
         else:
             self.state = HOMING
             self.errors = 0
-            self._end_s = self._plan_move(t, 0.0)
+            self._end_s = float(self.table.home(t))
 
     def _cmd_pa(self, cmd: SmcCommand, t: float) -> None:
         self._move(cmd, t, relative=False)
@@ -304,19 +304,18 @@ class Smc100(Device):
         self.moves += 1
         self.state = MOVING
         self.target_deg = target
-        start = t
-        self._end_s = self._plan_move(t, target)
-        if self.stall_move is not None and self.moves == self.stall_move:
-            self._stall_at_s = start + 0.5 * max(self._end_s - start, 0.0)
+        self._stalling = self.stall_move is not None and self.moves == self.stall_move
+        stall = STALL_FRACTION if self._stalling else None
+        self._end_s = float(self.table.command_move(t, math.radians(target), stall_fraction=stall))
 
     def _cmd_st(self, cmd: SmcCommand, t: float) -> None:
         if self.state == MOVING:
-            self._stall_at_s = None
-            self._end_s = self._stop_table(t)
-            self.target_deg = self._end_position_deg()
+            self._stalling = False
+            self._end_s = float(self.table.stop(t))
+            self.target_deg = math.degrees(self.table.target_rad)
         elif self.state == HOMING:
             self._end_s = None
-            self._stop_table(t)
+            self.table.stop(t)
             self.state = NOT_REFERENCED_FROM_HOMING
 
     def _limit(self, cmd: SmcCommand, t: float, index: int) -> None:
@@ -378,39 +377,3 @@ class Smc100(Device):
     # -- physics ---------------------------------------------------------------------------
     def _encoder_deg(self, t: float) -> float:
         return math.degrees(float(self.table.encoder_rad(t)))
-
-    def _table_moving(self, t: float) -> bool:
-        """Planned motion still running (ringing after the plan ends does not count)."""
-        planned_end = getattr(self.table, "planned_end_s", None)
-        if planned_end is not None:
-            return t < float(planned_end() if callable(planned_end) else planned_end)
-        return False
-
-    def _plan_move(self, t: float, target_deg: float) -> float:
-        """Start a move on the table; device time its plan ends."""
-        ret = self.table.command_move(t, math.radians(target_deg))
-        return self._end_from(ret, t)
-
-    def _stop_table(self, t: float) -> float:
-        stop = getattr(self.table, "stop", None)
-        if stop is not None:
-            return self._end_from(stop(t), t)
-        alpha = float(self.table.kinematics(t)[0])  # no stop in the model: hold where it is
-        return self._end_from(self.table.command_move(t, alpha), t)
-
-    def _end_from(self, ret: Any, t: float) -> float:
-        if isinstance(ret, int | float):
-            return max(float(ret), t)
-        end = getattr(ret, "t_end_s", None) or getattr(ret, "end_s", None)
-        if end is not None:
-            return max(float(end), t)
-        planned_end = getattr(self.table, "planned_end_s", None)
-        if planned_end is not None:
-            return max(float(planned_end() if callable(planned_end) else planned_end), t)
-        return t
-
-    def _end_position_deg(self) -> float:
-        target = getattr(self.table, "target_rad", None)
-        if target is not None:
-            return math.degrees(float(target() if callable(target) else target))
-        return self.target_deg if self.target_deg is not None else 0.0

@@ -1,0 +1,495 @@
+"""firmware_sim devices through their real ptys with real pyserial clients.
+
+Golden vectors on firmware_sim's own codecs, the SMC100 state machine and TE letters, KVH
+configuration mode, variants and faults, determinism, a physics check through the pty, and the
+time-scaled stream without a sequence gap. No timing assertions: waits have generous timeouts.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from firmware_sim.config import SimConfig
+from firmware_sim.devices import kvh, smc100
+from firmware_sim.faults import FaultError, Faults, parse_faults
+from firmware_sim.physics.sensors import ACCEL_PRESETS, GYRO_PRESETS
+from firmware_sim.simulator import Simulator
+from northfinder.constants import DPH, earth_rate_enu_rad_s, normal_gravity_m_s2
+
+HEADER = b"\xfe\x81\xff\x55"
+
+
+def _crc_bitwise(data: bytes) -> int:
+    """Reference CRC-32/MPEG-2, one bit at a time, straight from PROTOCOLS.md §2."""
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte << 24
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x04C11DB7) & 0xFFFFFFFF if crc & 0x80000000 else (crc << 1) & 0xFFFFFFFF
+    return crc
+
+
+# ---------------------------------------------------------------------------------------------
+# codecs against the golden vectors
+# ---------------------------------------------------------------------------------------------
+def test_crc_golden_vectors(golden):
+    for v in golden["crc32_mpeg2"]:
+        data = v["ascii"].encode() if "ascii" in v else bytes.fromhex(v["hex"])
+        assert kvh.crc32_mpeg2(data) == int(v["crc"], 16)
+    assert kvh.crc32_mpeg2(b"123456789") == 0x0376E6E7
+
+
+def test_crc_vectorized_matches_bitwise_reference():
+    rows = np.random.default_rng(3).integers(0, 256, (64, 32), dtype=np.uint8)
+    got = kvh.crc32_mpeg2_rows(rows)
+    assert [int(c) for c in got] == [_crc_bitwise(bytes(r)) for r in rows]
+
+
+def test_kvh_messages_golden(golden):
+    for v in golden["kvh_format_a"]:
+        packed = kvh.pack_messages([v["gyro"]], [v["accel_g"]], v["status"], v["sequence"],
+                                   v["temperature_c"])
+        assert packed.hex() == v["hex"], v["name"]
+        msg = kvh.unpack_messages(bytes.fromhex(v["hex"]))
+        assert msg["crc_ok"].all()
+        assert msg["gyro"][0].tolist() == v["gyro_f32"]
+        assert msg["accel"][0].tolist() == v["accel_f32"]
+        assert (int(msg["status"][0]), int(msg["sequence"][0]), int(msg["temperature"][0])) == (
+            v["status"], v["sequence"], v["temperature_c"])
+    # many messages at once: the vectorized packer equals the one-by-one packer
+    vs = golden["kvh_format_a"]
+    many = kvh.pack_messages([v["gyro"] for v in vs], [v["accel_g"] for v in vs], [v["status"] for v in vs],
+                             [v["sequence"] for v in vs], [v["temperature_c"] for v in vs])
+    assert many.hex() == "".join(v["hex"] for v in vs)
+
+
+def test_smc100_codec_golden(golden):
+    for v in golden["smc100"]["commands"]:
+        cmd = smc100.parse_command(bytes.fromhex(v["hex"]))
+        assert (cmd.address, cmd.command, cmd.value) == (v["address"], v["command"], v["value"])
+        assert cmd.query == v.get("query", False)
+    for v in golden["smc100"]["replies"]:
+        raw = bytes.fromhex(v["hex"])
+        address, command, payload = smc100.parse_reply(raw)
+        assert address == v["address"]
+        if "state" in v:
+            assert smc100.encode_status(v["address"], v["errors"], v["state"]) == raw
+        elif "error_letter" in v:
+            assert smc100.encode_reply(address, "TE", v["error_letter"]) == raw
+        elif "position" in v:
+            assert float(payload) == v["position"]
+            line = smc100.encode_reply(1, "TP", smc100.format_number(v["position"]))
+            assert float(smc100.parse_reply(line)[2]) == v["position"]
+        else:
+            assert smc100.encode_reply(address, command, smc100.format_number(v["soft_limit"])) == raw
+    assert smc100.encode_command(1, "PA", 90.0) == b"1PA90\r\n"
+
+
+# ---------------------------------------------------------------------------------------------
+# SMC100 through its pty
+# ---------------------------------------------------------------------------------------------
+class Stage:
+    """A tiny SMC100 host for the tests: send a line, read the reply line."""
+
+    def __init__(self, path: str) -> None:
+        self.port = serial.Serial(path, 57600, timeout=2.0)
+
+    def send(self, text: str) -> None:
+        self.port.write(text.encode("ascii") + b"\r\n")
+
+    def ask(self, text: str) -> str:
+        self.send(text)
+        line = self.port.readline()
+        assert line.endswith(b"\r\n"), f"no reply to {text!r}: {line!r}"
+        return line[:-2].decode("ascii")
+
+    def status(self) -> tuple[int, int]:
+        payload = self.ask("1TS")
+        assert payload.startswith("1TS") and len(payload) == 9
+        return int(payload[3:7], 16), int(payload[7:9], 16)
+
+    def wait_state(self, states: tuple[int, ...], timeout_s: float = 20.0) -> tuple[int, int]:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            errors, state = self.status()
+            if state in states:
+                return errors, state
+            time.sleep(0.01)
+        raise AssertionError(f"state never reached {states}, last {state:#x}")
+
+    def position_deg(self) -> float:
+        reply = self.ask("1TP")
+        assert reply.startswith("1TP")
+        return float(reply[3:])
+
+    def close(self) -> None:
+        self.port.close()
+
+
+@pytest.fixture
+def bench(request):
+    """A running simulator (time scale 100 unless the test says) and its endpoints."""
+    kwargs = dict(seed=5, latitude_deg=40.0, heading_deg=30.0, time_scale=100.0, accel_enabled=False)
+    kwargs.update(getattr(request, "param", {}))
+    sim = Simulator(SimConfig(**kwargs))
+    endpoints = sim.start()
+    yield sim, endpoints
+    sim.stop()
+
+
+def test_smc100_golden_exchange(golden, bench):
+    sim, ep = bench
+    stage = Stage(ep["turntable"])
+    try:
+        for step in golden["smc100"]["exchange"]:
+            if step.get("wait_ready"):
+                assert stage.wait_state((step["state"],)) == (0, step["state"])
+            elif "reply_position_near" in step:
+                step_deg = math.degrees(sim.world.table.encoder_step_rad)
+                assert abs(stage.position_deg() - step["reply_position_near"]) <= step_deg
+            elif step["reply"] is None:
+                stage.send(step["send"])
+            else:
+                assert stage.ask(step["send"]) == step["reply"], step
+    finally:
+        stage.close()
+
+
+def test_smc100_state_machine_and_te_letters(bench):
+    sim, ep = bench
+    stage = Stage(ep["turntable"])
+    try:
+        assert stage.ask("1TS") == "1TS00000A"
+        assert stage.ask("1TS?") == "1TS00000A"
+        assert stage.ask("1VE").startswith("1VE ")
+        stage.send("1PA90")
+        assert stage.ask("1TE") == "1TEH"
+        stage.send("1OR")
+        stage.send("1OR")
+        assert stage.ask("1TE") == "1TEE"  # home already started
+        stage.send("1PA10")
+        assert stage.ask("1TE") == "1TEL"  # not allowed in HOMING
+        stage.wait_state((smc100.READY_FROM_HOMING,))
+        assert stage.position_deg() == 0.0
+        stage.send("1OR")
+        assert stage.ask("1TE") == "1TEK"  # not allowed in READY
+        stage.send("1PA")
+        assert stage.ask("1TE") == "1TEC"  # parameter missing
+        stage.send("1PAabc")
+        assert stage.ask("1TE") == "1TEC"
+        stage.send("0TS")
+        assert stage.ask("1TE") == "1TEB"  # bad address
+        stage.send("1ZZ")
+        assert stage.ask("1TE") == "1TEA"
+        # soft limits: query forms, set, refuse a move beyond, refuse a bad value
+        assert stage.ask("1SL?") == "1SL-360"
+        assert stage.ask("1SR") == "1SR360"
+        stage.send("1SL-10")
+        assert stage.ask("1TE") == "1TE@"
+        assert stage.ask("1SL?") == "1SL-10"
+        stage.send("1PA-20")
+        assert stage.ask("1TE") == "1TEN"
+        stage.send("1PR-10.5")
+        assert stage.ask("1TE") == "1TEN"
+        stage.send("1SL5")
+        assert stage.ask("1TE") == "1TEC"
+        # a long move: MOVING, M for a second move, ST ends it early in READY from MOVING
+        stage.send("1PA300")
+        assert stage.ask("1TE") == "1TE@"
+        assert stage.status() == (0, smc100.MOVING)
+        stage.send("1PA10")
+        assert stage.ask("1TE") == "1TEM"
+        stage.send("1ST")
+        errors, state = stage.wait_state((smc100.READY_FROM_MOVING,))
+        stopped = stage.position_deg()
+        assert errors == 0 and 0.0 < stopped < 300.0
+        # RS: back to NOT REFERENCED, limits back to their defaults
+        stage.send("1RS")
+        assert stage.ask("1TS") == "1TS00000A"
+        assert stage.ask("1SL") == "1SL-360"
+    finally:
+        stage.close()
+
+
+def test_smc100_move_to_90_ends_ready_at_90_within_encoder_step(bench):
+    sim, ep = bench
+    stage = Stage(ep["turntable"])
+    try:
+        stage.send("1OR")
+        stage.wait_state((smc100.READY_FROM_HOMING,))
+        stage.send("1PA90")
+        assert stage.ask("1TE") == "1TE@"
+        assert stage.wait_state((smc100.READY_FROM_MOVING,)) == (0, smc100.READY_FROM_MOVING)
+        step_deg = math.degrees(sim.world.table.encoder_step_rad)
+        assert abs(stage.position_deg() - 90.0) <= step_deg
+        stage.send("1PR-45.5")
+        stage.wait_state((smc100.READY_FROM_MOVING,))
+        assert abs(stage.position_deg() - 44.5) <= step_deg
+    finally:
+        stage.close()
+
+
+@pytest.mark.parametrize("bench", [{"faults": ["stage-stall=2"]}], indirect=True)
+def test_smc100_stall_fault_gives_following_error_and_disable(bench):
+    sim, ep = bench
+    stage = Stage(ep["turntable"])
+    try:
+        stage.send("1OR")
+        stage.wait_state((smc100.READY_FROM_HOMING,))
+        stage.send("1PA20")
+        assert stage.wait_state((smc100.READY_FROM_MOVING,)) == (0, smc100.READY_FROM_MOVING)
+        stage.send("1PA120")  # the second move jams
+        errors, state = stage.wait_state((smc100.DISABLE_FROM_MOVING,))
+        assert errors & 0x20  # following error
+        stalled = stage.position_deg()
+        assert 20.0 < stalled < 120.0
+        stage.send("1PA10")
+        assert stage.ask("1TE") == "1TEJ"  # not allowed in DISABLE
+        stage.send("1MM1")
+        assert stage.status() == (0, smc100.READY_FROM_DISABLE)
+        stage.send("1PA120")  # only that one move stalls
+        assert stage.wait_state((smc100.READY_FROM_MOVING,)) == (0, smc100.READY_FROM_MOVING)
+    finally:
+        stage.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# KVH through its pty
+# ---------------------------------------------------------------------------------------------
+def _messages(raw: bytes) -> np.ndarray:
+    start = raw.find(HEADER)
+    assert start >= 0, "no format-A header in the stream"
+    return kvh.unpack_messages(raw[start:])
+
+
+def _read_quiet(port: serial.Serial, quiet_s: float = 0.3) -> bytes:
+    """Read until nothing arrives for quiet_s of wall time."""
+    out = bytearray()
+    port.timeout = quiet_s
+    while chunk := port.read(65536):
+        out += chunk
+    return bytes(out)
+
+
+def _read_exact(port: serial.Serial, n_bytes: int, timeout_s: float = 30.0) -> bytes:
+    out = bytearray()
+    port.timeout = 0.5
+    deadline = time.monotonic() + timeout_s
+    while len(out) < n_bytes and time.monotonic() < deadline:
+        out += port.read(n_bytes - len(out))
+    assert len(out) == n_bytes, f"read {len(out)} of {n_bytes} bytes"
+    return bytes(out)
+
+
+@pytest.mark.parametrize("bench", [{"time_scale": 10.0}], indirect=True)
+def test_kvh_configuration_mode(bench):
+    sim, ep = bench
+    port = serial.Serial(ep["imu"], 921600, timeout=1.0)
+    try:
+        first = _messages(_read_exact(port, 36 * 200))
+        assert first["crc_ok"][:100].all() and (first["status"][:100] == 0x77).all()
+        port.write(b"=CONFIG,1\n")
+        _read_quiet(port)  # what was already on its way
+        port.write(b"?DR\n")
+        port.timeout = 2.0
+        assert port.readline() == b"DR,1000\n"
+        assert _read_quiet(port, 0.3) == b""  # 3 s of device time: configuration mode sends no data
+        for line in (b"=DR,100\n", b"=ROTFMT,RATE\n", b"=ROTUNITS,DEG\n", b"=DR,333\n", b"=ROTFMT,FOO\n"):
+            port.write(line)
+        port.write(b"?DR\n?ROTFMT\n?ROTUNITS\n")
+        port.timeout = 2.0
+        assert [port.readline() for _ in range(3)] == [b"DR,100\n", b"ROTFMT,RATE\n", b"ROTUNITS,DEG\n"]
+        port.write(b"=CONFIG,0\n")
+        msgs = kvh.unpack_messages(_read_exact(port, 36 * 50))  # data again, from a message boundary
+        assert msgs["crc_ok"].all()
+        assert (msgs["status"][:2] == 0).all() and (msgs["status"][2:] == 0x77).all()
+        assert (np.diff(msgs["sequence"].astype(int)) % 128 == 1).all()
+        # rates in deg/s now: the gyro sees the Earth rate (15.04 deg/h) plus the nav preset's
+        # errors; the mean over 48 samples at 100 Hz is within 3σ of white noise of it
+        rate_dps = msgs["gyro"][2:].astype(float).mean(axis=0)
+        g = GYRO_PRESETS["nav"]
+        sigma = max(g.arw_deg_rt_h) / 60.0 / math.sqrt(48 / 100.0)  # deg/s over 0.48 s
+        systematic = (max(np.abs(g.bias_dph)) + 3.0 * max(g.bias_instability_dph)) / 3600.0
+        earth_dps = 7.2921150e-5 * 180.0 / math.pi
+        assert abs(np.linalg.norm(rate_dps) - earth_dps) < math.sqrt(3.0) * (3.0 * sigma + systematic)
+    finally:
+        port.close()
+
+
+@pytest.mark.parametrize("variant, status", [("gyro-1axis", 0x02), ("gyro-3axis", 0x07)])
+def test_kvh_gyro_only_variants(variant, status):
+    with Simulator(SimConfig(seed=1, time_scale=20.0, imu_variant=variant, accel_enabled=False)) as ep:
+        port = serial.Serial(ep["imu"], 921600, timeout=1.0)
+        try:
+            msgs = _messages(_read_exact(port, 36 * 101))
+        finally:
+            port.close()
+    assert msgs["crc_ok"].all() and (msgs["status"] == status).all()
+    assert (msgs["accel"] == 0.0).all()
+    if variant == "gyro-1axis":
+        assert (msgs["gyro"][:, [0, 2]] == 0.0).all() and (msgs["gyro"][:, 1] != 0.0).all()
+
+
+def _drive(faults, splits, n_samples=3000, seed=11):
+    """The IMU alone, driven at chosen device times; a pyserial client reads everything."""
+    sim = Simulator(SimConfig(seed=seed, accel_enabled=False, faults=faults))
+    sim._build()  # no loop thread: this test chooses the device times itself
+    try:
+        client = serial.Serial(sim.imu.endpoint(), 921600, timeout=0.2)
+        out = bytearray()
+        for t in np.linspace(0.0, n_samples / 1000.0, splits + 1)[1:]:
+            sim.imu.advance(float(t))
+            while sim.imu.port.pending:
+                sim.imu.port.flush()
+                out += client.read(client.in_waiting or 1)
+        while chunk := client.read(65536):  # what is still in flight through the pty
+            out += chunk
+        client.close()
+        return bytes(out), sim.imu
+    finally:
+        sim.stop()
+
+
+def test_kvh_same_seed_same_bytes_with_or_without_empty_faults():
+    plain, _ = _drive(None, splits=7)
+    empty, _ = _drive([], splits=7)
+    resplit, _ = _drive(Faults(), splits=41)
+    assert len(plain) == 3000 * 36
+    assert plain == empty == resplit
+    other, _ = _drive(None, splits=7, seed=12)
+    assert other != plain
+
+
+def test_kvh_crc_and_drop_faults_only_touch_what_they_say():
+    clean, _ = _drive(None, splits=5)
+    crc, _ = _drive(["imu-crc-rate=0.2"], splits=5)
+    ref, got = kvh.unpack_messages(clean), kvh.unpack_messages(crc)
+    bad = ~got["crc_ok"]
+    n = len(ref)
+    # binomial(3000, 0.2): mean 600, σ ≈ 22
+    assert abs(bad.sum() - 0.2 * n) < 5 * math.sqrt(n * 0.2 * 0.8)
+    same = np.frombuffer(clean, np.uint8).reshape(n, 36) == np.frombuffer(crc, np.uint8).reshape(n, 36)
+    assert same[:, :35].all() and (same[:, 35] == ~bad).all()
+    dropped, imu = _drive(["imu-drop-byte-rate=0.1"], splits=5)
+    lost = len(clean) - len(dropped)
+    assert 0 < lost and abs(lost - 0.1 * n) < 5 * math.sqrt(n * 0.1 * 0.9)
+
+
+def test_kvh_silence_fault_leaves_a_gap_of_its_duration():
+    raw, imu = _drive(["imu-silence=1.0:0.5"], splits=6)
+    msgs = kvh.unpack_messages(raw)
+    assert msgs["crc_ok"].all() and len(msgs) == 3000 - 500
+    jumps = np.diff(msgs["sequence"].astype(int)) % 128
+    assert sorted(set(jumps.tolist())) == [1, 501 % 128]
+
+
+def test_kvh_disconnect_fault_repoints_the_symlink_and_cleans_up():
+    cfg = SimConfig(seed=2, time_scale=20.0, accel_enabled=False, faults=["imu-disconnect=1.0:0.5"])
+    sim = Simulator(cfg)
+    ep = sim.start()
+    link = ep["imu"]
+    try:
+        assert os.path.islink(link)
+        port = serial.Serial(link, 921600, timeout=0.5)
+        with pytest.raises(serial.SerialException):  # the port vanishes under the client
+            deadline = time.monotonic() + 10.0
+            while time.monotonic() < deadline:
+                port.read(65536)
+        port.close()
+        # it comes back behind the same link (a new pty; the kernel may reuse the number)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            try:
+                port = serial.Serial(link, 921600, timeout=1.0)
+                break
+            except serial.SerialException:
+                time.sleep(0.02)
+        msgs = _messages(_read_exact(port, 36 * 101))
+        port.close()
+        assert msgs["crc_ok"].all() and (np.diff(msgs["sequence"].astype(int)) % 128 == 1).all()
+    finally:
+        sim.stop()
+    assert not os.path.exists(os.path.dirname(link))
+
+
+def test_fault_specs_are_checked():
+    assert parse_faults([]) == Faults() == parse_faults(None)
+    f = parse_faults(["imu-silence=10:2", "stage-stall=3", "imu-disconnect=4"])
+    assert f.imu_silence == (10.0, 2.0) and f.stage_stall == 3 and f.imu_disconnect[0] == 4.0
+    for bad in (["imu-crc-rate=1.5"], ["nope=1"], ["imu-silence=3"], ["stage-stall=0"], ["disturbance=1:2"]):
+        with pytest.raises(FaultError):
+            parse_faults(bad)
+
+
+# ---------------------------------------------------------------------------------------------
+# physics through the pty, and the time-scaled stream
+# ---------------------------------------------------------------------------------------------
+def _rz(a):
+    return np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rx(a):
+    return np.array([[1.0, 0.0, 0.0], [0.0, math.cos(a), -math.sin(a)], [0.0, math.sin(a), math.cos(a)]])
+
+
+def _ry(a):
+    return np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
+
+
+def test_kvh_gyro_mean_is_earth_rate_projection_within_3_sigma():
+    heading, pitch, roll, lat = 30.0, 1.0, -0.5, 40.0
+    alpha_deg = -63.0  # the stage's power-on angle; not homed, so the table stands still
+    cfg = SimConfig(seed=21, time_scale=50.0, heading_deg=heading, pitch_deg=pitch, roll_deg=roll,
+                    latitude_deg=lat, grade="nav", accel_enabled=False, stage_power_on_deg=alpha_deg)
+    n = 20000  # 20 s of device time at 1000 Hz
+    with Simulator(cfg) as ep:
+        port = serial.Serial(ep["imu"], 921600, timeout=1.0)
+        try:
+            msgs = _messages(_read_exact(port, 36 * (n + 1)))[:n]
+        finally:
+            port.close()
+    assert msgs["crc_ok"].all()
+    alpha = math.radians(alpha_deg)
+    c_pn = _rz(-math.radians(heading)) @ _rx(math.radians(pitch)) @ _ry(math.radians(roll))
+    c_bn = c_pn @ _rz(alpha)
+    omega_b = c_bn.T @ earth_rate_enu_rad_s(lat)
+    f_b = c_bn.T @ np.array([0.0, 0.0, normal_gravity_m_s2(lat)])
+    dt = 1e-3
+    gyro_mean = msgs["gyro"].astype(float).mean(axis=0) / dt
+    g = GYRO_PRESETS["nav"]
+    sigma_white = np.asarray(g.arw_deg_rt_h) * math.pi / 180.0 / 60.0 / math.sqrt(n * dt)
+    # stated errors of the preset bound what is not white: constant bias, bias instability (3σ),
+    # scale factor and misalignment acting on the Earth rate
+    rrw = 3.0 * np.asarray(g.rrw_dph_rt_h) * math.sqrt(n * dt / 3600.0)
+    systematic = (np.abs(g.bias_dph) + 3.0 * np.asarray(g.bias_instability_dph) + rrw) * DPH \
+        + (np.abs(g.scale_factor_ppm) + np.abs(g.misalignment_urad).max()) * 1e-6 * np.linalg.norm(omega_b)
+    assert np.all(np.abs(gyro_mean - omega_b) < 3.0 * sigma_white + systematic), (gyro_mean, omega_b)
+    accel_g = msgs["accel"].astype(float).mean(axis=0)
+    a = ACCEL_PRESETS["nav"]
+    sigma_a = np.asarray(a.noise_ug_rt_hz) * 1e-6 / math.sqrt(n * dt)
+    bound_a = 3.0 * sigma_a + (np.abs(a.bias_ug) + 3.0 * np.asarray(a.bias_instability_ug)) * 1e-6 \
+        + (np.abs(a.scale_factor_ppm) + np.abs(a.misalignment_urad).max()) * 1e-6
+    assert np.all(np.abs(accel_g - f_b / 9.80665) < bound_a)
+    assert abs(np.linalg.norm(accel_g) - normal_gravity_m_s2(lat) / 9.80665) < np.linalg.norm(bound_a)
+
+
+def test_time_scale_50_sixty_device_seconds_without_a_sequence_gap():
+    n = 60000
+    with Simulator(SimConfig(seed=3, time_scale=50.0, accel_enabled=False)) as ep:
+        port = serial.Serial(ep["imu"], 921600, timeout=1.0)
+        try:
+            t0 = time.monotonic()
+            raw = _read_exact(port, 36 * (n + 1), timeout_s=60.0)
+            wall = time.monotonic() - t0
+        finally:
+            port.close()
+    msgs = _messages(raw)
+    assert len(msgs) >= n and msgs["crc_ok"].all()
+    assert (np.diff(msgs["sequence"].astype(int)) % 128 == 1).all()
+    print(f"\n60 s device time at 1000 Hz, time scale 50: {len(msgs)} messages in {wall:.2f} s wall")
