@@ -266,7 +266,10 @@ class _ErrorModel:
 
     def _apply(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=float).reshape(-1, 3)
-        return x @ self.matrix_t + self._errors(x.shape[0])
+        m = self.matrix_t
+        # row by row in a fixed order (BLAS picks other kernels, and roundings, for other sizes)
+        scaled = x[:, 0:1] * m[0] + x[:, 1:2] * m[1] + x[:, 2:3] * m[2]
+        return scaled + self._errors(x.shape[0])
 
 
 class GyroModel(_ErrorModel):
