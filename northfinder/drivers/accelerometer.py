@@ -15,8 +15,9 @@ Example::
     from northfinder.drivers.accelerometer import Accelerometer
 
     with Accelerometer("slcan", "/dev/ttyACM0", bitrate=500000, log_path="can.asc") as acc:
+        acc.wait_heartbeat()                  # the node is there (boot-up 0x00 or its state)
         acc.start_node()                      # NMT start → operational
-        print(acc.wait_heartbeat())           # 5 (operational)
+        acc.wait_heartbeat_state(0x05)        # its next heartbeats say operational
         block = acc.read(100)                 # one second at 100 Hz
         print(block.accel_g.mean(axis=0), acc.stats, acc.emergencies)
 """
@@ -203,6 +204,26 @@ class Accelerometer:
                     )
                 self._lock.wait(remaining)
             return int(self._decoder.heartbeat_state)
+
+    def wait_heartbeat_state(self, state: int, timeout_s: float = 3.0) -> int:
+        """Wait until a heartbeat reports `state` (e.g. 0x05 after :meth:`start_node`)."""
+        deadline = time.monotonic() + timeout_s
+        last = None
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise DeviceError(
+                    DEVICE, self.port,
+                    f"node 0x{self.node_id:02X} on {self.port} did not report state 0x{state:02X} within "
+                    f"{timeout_s:g} s (last heartbeat: {last if last is None else hex(last)})"
+                )
+            try:
+                last = self.wait_heartbeat(remaining)
+            except DeviceError:
+                last = self.heartbeat_state
+                continue
+            if last == state:
+                return last
 
     @property
     def heartbeat_state(self) -> int | None:
