@@ -1,0 +1,219 @@
+#!/usr/bin/env python3
+"""Monte Carlo heading accuracy against the white-noise limit, drift, and solver speed.
+
+Usage: python3 tools/accuracy_vs_limit.py OUTDIR [--trials N] [--seed S]
+
+1. White gyro noise over n ∈ {4, 8, 24}, T_total ∈ {120, 600} s, ARW ∈ {0.002, 0.012} °/√h,
+   L ∈ {0, 40, 60}°, tilt 0° and 10° (tilt azimuth 90°, the worst k): σ_MC / σ_limit per cell
+   (σ_limit from northfinder.estimators.limits, the tilted bound for tilted cells) and the RMS
+   reported heading_std_deg / σ_MC.
+2. With bias drift (rate random walk): plain least squares vs the drift-aware model (bias linear
+   in time), in natural and interleaved position order, per cell.
+3. Wall time of 10⁴ trials of a 24-position find (simulate + solve, and solve only).
+Writes ratio_vs_limit.png, drift.png and results.md into OUTDIR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from northfinder.estimators import montecarlo as mc  # noqa: E402
+from northfinder.estimators.heading import solve_batch  # noqa: E402
+from northfinder.estimators.limits import noise_limit_heading_std_deg  # noqa: E402
+
+HEADING_DEG, TILT_AZ_DEG = 30.0, 90.0
+
+
+def wrap180(x):
+    return (np.asarray(x) + 180.0) % 360.0 - 180.0
+
+
+def white_grid(rng, trials):
+    rows = []
+    for n, t_total, arw, lat, tilt in itertools.product(
+        (4, 8, 24), (120.0, 600.0), (0.002, 0.012), (0.0, 40.0, 60.0), (0.0, 10.0)
+    ):
+        pitch, roll = mc.pitch_roll_for_tilt(HEADING_DEG, tilt, TILT_AZ_DEG)
+        plan = mc.Plan(mc.equally_spaced_deg(n), dwell_s=t_total / n)
+        b = mc.simulate(rng, trials, plan, HEADING_DEG, pitch, roll, lat, mc.GyroNoise(arw_deg_rt_h=arw))
+        sol = solve_batch(b.table_angle_deg, b.gyro_dph, b.accel_g, lat, gyro_std_dph=b.gyro_std_dph)
+        sigma = np.sqrt(np.mean(wrap180(sol.heading_deg - HEADING_DEG) ** 2))
+        limit = float(noise_limit_heading_std_deg(arw, t_total, lat, tilt, TILT_AZ_DEG))
+        reported = np.sqrt(np.mean(sol.heading_std_deg**2))
+        rows.append((n, t_total, arw, lat, tilt, limit, sigma, sigma / limit, reported / sigma))
+    return rows
+
+
+def drift_grid(rng, trials):
+    rows = []
+    for n, t_total, arw, rrw in itertools.product((8, 24), (120.0, 600.0), (0.002, 0.012), (0.05, 0.5)):
+        rms = {}
+        for order in ("natural", "interleaved"):
+            idx = np.arange(n) if order == "natural" else mc.interleaved_order(n)
+            plan = mc.Plan(mc.equally_spaced_deg(n)[idx], dwell_s=t_total / n, gap_s=10.0)
+            b = mc.simulate(
+                rng,
+                trials,
+                plan,
+                HEADING_DEG,
+                1.0,
+                2.0,
+                40.0,
+                mc.GyroNoise(arw_deg_rt_h=arw, rrw_dph_rt_h=rrw),
+            )
+            for model in ("constant", "linear"):
+                sol = solve_batch(
+                    b.table_angle_deg,
+                    b.gyro_dph,
+                    b.accel_g,
+                    40.0,
+                    bias_model=model,
+                    sample_times_s=b.sample_times_s,
+                )
+                rms[(order, model)] = np.sqrt(np.mean(wrap180(sol.heading_deg - HEADING_DEG) ** 2))
+        limit = float(noise_limit_heading_std_deg(arw, t_total, 40.0))
+        rows.append((n, t_total, arw, rrw, limit, rms))
+    return rows
+
+
+def timing(rng):
+    plan = mc.Plan(mc.equally_spaced_deg(24), dwell_s=25.0)
+    gyro, accel = mc.GyroNoise(arw_deg_rt_h=0.01, bias_sigma_dph=0.5), mc.AccelNoise(noise_ug_rt_hz=20.0)
+    full, solve = [], []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        b = mc.simulate(rng, 10_000, plan, HEADING_DEG, 2.0, 3.0, 40.0, gyro, accel, three_axis=True)
+        t1 = time.perf_counter()
+        solve_batch(
+            b.table_angle_deg,
+            b.gyro_dph,
+            b.accel_g,
+            40.0,
+            gyro_std_dph=b.gyro_std_dph,
+            accel_std_g=b.accel_std_g,
+        )
+        t2 = time.perf_counter()
+        full.append(t2 - t0)
+        solve.append(t2 - t1)
+    return min(full), float(np.median(full)), min(solve)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("outdir", type=Path)
+    ap.add_argument("--trials", type=int, default=10_000)
+    ap.add_argument("--seed", type=int, default=1)
+    args = ap.parse_args()
+    out = args.outdir
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(args.seed)
+
+    white = white_grid(rng, args.trials)
+    md = [f"# Heading accuracy vs the noise limit ({args.trials} trials per cell, seed {args.seed})", ""]
+    md += ["## White gyro noise", "", "σ_limit: level formula of CONVENTIONS.md × k = √(1 + (tan ε·sin ζ)²) "
+           f"(ζ = {TILT_AZ_DEG:g}°, so k = 1/cos ε at 10°).", ""]  # fmt: skip
+    md += [
+        "| n | T_total [s] | ARW [°/√h] | L [°] | tilt [°] | σ_limit [°] | σ_MC [°] | σ_MC/σ_limit "
+        "| reported/σ_MC |"
+    ]
+    md += ["|---|---|---|---|---|---|---|---|---|"]
+    for n, t, arw, lat, tilt, lim, sig, ratio, rep in white:
+        md.append(
+            f"| {n} | {t:g} | {arw:g} | {lat:g} | {tilt:g} | {lim:.4f} | {sig:.4f} | {ratio:.4f} "
+            f"| {rep:.4f} |"
+        )
+    ratios = np.array([r[7] for r in white])
+    reps = np.array([r[8] for r in white])
+    line = (f"white noise: σ_MC/σ_limit over {len(white)} cells in [{ratios.min():.4f}, {ratios.max():.4f}], "
+            f"reported/σ_MC in [{reps.min():.4f}, {reps.max():.4f}]")  # fmt: skip
+    print(line)
+    md += ["", line, ""]
+
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    for tilt, marker in ((0.0, "o"), (10.0, "s")):
+        sel = [i for i, r in enumerate(white) if r[4] == tilt]
+        ax.plot(sel, ratios[sel], marker, label=f"σ_MC/σ_limit, tilt {tilt:g}°")
+        ax.plot(sel, reps[sel], marker, mfc="none", label=f"reported/σ_MC, tilt {tilt:g}°")
+    ax.axhspan(0.95, 1.05, color="g", alpha=0.1)
+    ax.set(
+        xlabel="cell (n, T_total, ARW, L, tilt)",
+        ylabel="ratio",
+        title=f"Monte Carlo vs noise limit ({args.trials} trials/cell)",
+    )
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "ratio_vs_limit.png", dpi=120)
+    plt.close(fig)
+
+    drift = drift_grid(rng, args.trials)
+    md += ["## Bias drift (rate random walk), L = 40°, 10 s move between positions", ""]
+    md += ["RMS heading error [°]; *plain* = constant bias (eq 4), *aware* = bias linear in time; "
+           "*interleaved* visits opposite positions back to back (0°, 180°, 90°, 270°, …).", ""]  # fmt: skip
+    md += [
+        "| n | T_total [s] | ARW [°/√h] | RRW [°/h/√h] | σ_limit [°] "
+        "| plain natural | aware natural | plain interleaved | aware interleaved | best |"
+    ]
+    md += ["|---|---|---|---|---|---|---|---|---|---|"]
+    for n, t, arw, rrw, lim, rms in drift:
+        best = min(rms, key=rms.get)
+        vals = " | ".join(
+            f"{rms[k]:.4f}"
+            for k in (
+                ("natural", "constant"),
+                ("natural", "linear"),
+                ("interleaved", "constant"),
+                ("interleaved", "linear"),
+            )
+        )
+        md.append(f"| {n} | {t:g} | {arw:g} | {rrw:g} | {lim:.4f} | {vals} | {best[1]} {best[0]} |")
+        print(f"drift n={n} T={t:g} ARW={arw:g} RRW={rrw:g}: limit {lim:.4f}°, {vals}")
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    x = np.arange(len(drift))
+    for k, style in zip(
+        (
+            ("natural", "constant"),
+            ("natural", "linear"),
+            ("interleaved", "constant"),
+            ("interleaved", "linear"),
+        ),
+        ("o-", "s-", "o--", "s--"),
+        strict=True,
+    ):
+        ax.semilogy(
+            x, [r[5][k] for r in drift], style, label=f"{'plain' if k[1] == 'constant' else 'aware'}, {k[0]}"
+        )
+    ax.semilogy(x, [r[4] for r in drift], "k:", label="white-noise limit")
+    ax.set_xticks(x, [f"{r[0]}/{r[1]:g}/{r[2]:g}/{r[3]:g}" for r in drift], rotation=60, fontsize=7)
+    ax.set(
+        xlabel="n / T_total / ARW / RRW", ylabel="RMS heading error [°]", title="Drift: plain vs drift-aware"
+    )
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "drift.png", dpi=120)
+    plt.close(fig)
+
+    best_full, median_full, best_solve = timing(rng)
+    line = (f"10^4 trials of a 24-position find (3-axis, simulate + solve): best {best_full:.3f} s, median "
+            f"{median_full:.3f} s; solve only: best {best_solve:.3f} s")  # fmt: skip
+    print(line)
+    md += ["", "## Speed", "", line]
+    (out / "results.md").write_text("\n".join(md) + "\n")
+    print(f"wrote {out}/ratio_vs_limit.png drift.png results.md")
+
+
+if __name__ == "__main__":
+    main()
