@@ -180,7 +180,7 @@ def main() -> None:
         )
         md.append(f"| {n} | {t:g} | {arw:g} | {rrw:g} | {lim:.4f} | {vals} | {best[1]} {best[0]} |")
         print(f"drift n={n} T={t:g} ARW={arw:g} RRW={rrw:g}: limit {lim:.4f}°, {vals}")
-    fig, ax = plt.subplots(figsize=(9, 4.5))
+    fig, ax = plt.subplots(figsize=(11, 4.8))
     x = np.arange(len(drift))
     for k, style in zip(
         (
