@@ -68,10 +68,11 @@ def _explain_open_error(device: str, url: str, exc: Exception) -> DeviceError:
 
 
 def open_serial(url: str, *, device: str, baudrate: int, timeout_s: float, **kwargs) -> serial.SerialBase:
-    """Open `url` with pyserial (exclusive for local paths); DeviceError on any failure."""
+    """Open `url` with pyserial (exclusive for local paths, also behind ``spy://``); DeviceError on
+    any failure."""
     if not url:
         raise DeviceError(device, None, "no port given — set it in the bench config or on the command line")
-    if is_local_path(url):
+    if is_local_path(url) or url.startswith("spy://"):
         kwargs.setdefault("exclusive", True)
     try:
         return serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s, write_timeout=timeout_s,
@@ -171,12 +172,23 @@ class SerialTransport:
         return data
 
     def read_available(self, max_bytes: int = 1 << 16) -> bytes:
-        """Whatever is waiting (at least one byte if any arrives within the timeout)."""
+        """Whatever is waiting; if nothing is, wait up to the timeout for the first byte and then
+        take everything that came with it (one log entry, few small chunks)."""
         try:
             waiting = self._serial.in_waiting
+            if waiting:
+                data = self._serial.read(min(waiting, max_bytes))
+            else:
+                data = self._serial.read(1)
+                if data:
+                    more = self._serial.in_waiting
+                    if more:
+                        data += self._serial.read(min(more, max_bytes - 1))
         except (serial.SerialException, OSError, TypeError) as exc:
             raise self._wrap(exc) from None
-        return self.read(min(max(waiting, 1), max_bytes))
+        self.bytes_read += len(data)
+        self._log("<", data)
+        return data
 
     def read_until(self, terminator: bytes = b"\r\n", size: int | None = 256) -> bytes:
         """Bytes up to and including `terminator`, or what came before the timeout / `size`."""

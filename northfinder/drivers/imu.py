@@ -203,13 +203,19 @@ class Imu:
                         "— is the IMU still streaming (cable, rate, not left in config mode)?"
                     )
                 self._cond.wait(remaining)
-            index = np.concatenate([c[0] for c in self._pending])
-            frames = np.concatenate([c[1] for c in self._pending])
-            rest_index, rest_frames = index[n:], frames[n:]
-            self._pending = [(rest_index, rest_frames)] if len(rest_index) else []
-            self._pending_n = len(rest_index)
+            taken, got = [], 0
+            while got < n:  # only the chunks needed: a long backlog is not copied on every read
+                index, frames = self._pending.pop(0)
+                k = min(len(index), n - got)
+                taken.append((index[:k], frames[:k]))
+                if k < len(index):
+                    self._pending.insert(0, (index[k:], frames[k:]))
+                got += k
+            self._pending_n -= n
             rate, fmt, units = self.rate_hz, self.rot_format, self.rot_units
-        return frames_to_block(index[:n], frames[:n], rate, fmt, units)
+        index = np.concatenate([c[0] for c in taken])
+        frames = np.concatenate([c[1] for c in taken])
+        return frames_to_block(index, frames, rate, fmt, units)
 
     def discard_pending(self) -> int:
         """Drop samples decoded but not read yet (e.g. those from before a move); returns how many."""
@@ -255,17 +261,37 @@ class Imu:
         self._t.write(kvh.encode_set("CONFIG", 0))
 
     def query(self, key: str) -> str:
-        """``?KEY`` → its value ("DR" → "1000"); enters and leaves config mode if needed."""
+        """``?KEY`` → its value ("DR" → "1000").
+
+        Outside config mode this enters and leaves it (data pauses; samples pending are dropped).
+        A DR/ROTFMT/ROTUNITS answer also updates :attr:`rate_hz` / :attr:`rot_format` /
+        :attr:`rot_units`, so the conversion to rad/s follows what the device says.
+        """
         key = key.upper()
         inside = self._config_mode
         if not inside:
             self._enter_config()
         try:
             self._t.write(kvh.encode_query(key))
-            return self._await_reply(key, self.timeout_s)
+            value = self._await_reply(key, self.timeout_s)
         finally:
             if not inside:
                 self._leave_config()
+        self._adopt(key, value)
+        return value
+
+    def _adopt(self, key: str, value: str) -> None:
+        """Follow the device's own DR / ROTFMT / ROTUNITS when it reports a valid one."""
+        with self._cond:
+            try:
+                if key == "DR" and float(value) in kvh.RATES_HZ:
+                    self.rate_hz = float(value)
+                elif key == "ROTFMT" and value.upper() in kvh.ROT_FORMATS:
+                    self.rot_format = value.upper()
+                elif key == "ROTUNITS" and value.upper() in kvh.ROT_UNITS:
+                    self.rot_units = value.upper()
+            except ValueError:
+                pass
 
     def configure(self, rate_hz: float | None = None, rot_format: str | None = None,
                   rot_units: str | None = None) -> dict[str, str]:
@@ -280,6 +306,7 @@ class Imu:
             raise ConfigError(f"imu rot_format {rot_format!r} must be one of {kvh.ROT_FORMATS}")
         if rot_units is not None and rot_units.upper() not in kvh.ROT_UNITS:
             raise ConfigError(f"imu rot_units {rot_units!r} must be one of {kvh.ROT_UNITS}")
+        old_rate = self.rate_hz
         self._enter_config()
         rate_changed = False
         try:
@@ -301,7 +328,7 @@ class Imu:
                         key == "DR" and float(asked) == float(values[key])):
                     raise DeviceError(DEVICE, self.port, f"the IMU did not accept {key}={asked} "
                                       f"(it reports {values[key]})")
-            rate_changed = new_rate != self.rate_hz or rate_hz is not None
+            rate_changed = new_rate != old_rate or rate_hz is not None
             with self._cond:
                 self.rate_hz = new_rate
                 self.rot_format = values["ROTFMT"].upper()

@@ -1,0 +1,95 @@
+"""SerialTransport over the pyserial URLs the drivers accept: a pty path, spy://, socket://, loop://."""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import tty
+
+import pytest
+
+from northfinder.drivers.turntable import Turntable
+from northfinder.errors import DeviceError
+from northfinder.transport import SerialTransport
+
+
+@pytest.fixture
+def pty_pair():
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    yield master, os.ttyname(slave)
+    os.close(master)
+    os.close(slave)
+
+
+def test_raw_log_gets_exactly_the_bytes_read(tmp_path):
+    raw = tmp_path / "sub" / "x.raw"
+    with SerialTransport("loop://", device="imu", baudrate=921600, timeout_s=0.2, raw_log=raw) as t:
+        t.write(b"\xfe\x81\xff\x55" + bytes(range(40)))
+        got = t.read_available()
+        got += t.read_available()
+    assert got == b"\xfe\x81\xff\x55" + bytes(range(40))
+    assert raw.read_bytes() == got  # written bytes are not in the raw log, read bytes are
+
+
+def test_spy_url_taps_a_real_pty_and_stays_exclusive(pty_pair, tmp_path):
+    master, path = pty_pair
+    spy_file = tmp_path / "spy.txt"
+    url = f"spy://{path}?file={spy_file}"
+
+    def answer():
+        line = b""
+        while not line.endswith(b"\r\n"):
+            line += os.read(master, 64)
+        os.write(master, b"1TS000033\r\n")
+
+    t = threading.Thread(target=answer)
+    t.start()
+    with Turntable(url, timeout_s=2) as stage:
+        assert stage.status().state_name == "READY from MOVING"
+        with pytest.raises(DeviceError, match="busy"):
+            SerialTransport(path, device="turntable", baudrate=57600)
+    t.join()
+    tap = spy_file.read_text()
+    assert "TX   0000  31 54 53 0D 0A" in tap and "RX" in tap  # the query out, the reply in
+
+
+def test_socket_url_to_a_local_server():
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    port = server.getsockname()[1]
+
+    def serve():
+        conn, _ = server.accept()
+        with conn:
+            data = b""
+            while not data.endswith(b"\r\n"):
+                data += conn.recv(64)
+            conn.sendall(b"1VE SMC_CC socket\r\n")
+
+    t = threading.Thread(target=serve)
+    t.start()
+    try:
+        with Turntable(f"socket://127.0.0.1:{port}", timeout_s=2) as stage:
+            assert stage.version() == "SMC_CC socket"
+    finally:
+        t.join()
+        server.close()
+
+
+def test_socket_url_refused_is_one_clear_line():
+    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # nothing listens there now
+    with pytest.raises(DeviceError) as exc:
+        SerialTransport(f"socket://127.0.0.1:{port}", device="turntable", baudrate=57600)
+    assert f"socket://127.0.0.1:{port}" in str(exc.value)
+
+
+def test_empty_port_is_a_user_error():
+    with pytest.raises(DeviceError, match="no port given"):
+        SerialTransport("", device="imu", baudrate=921600)
