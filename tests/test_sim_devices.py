@@ -493,3 +493,39 @@ def test_time_scale_50_sixty_device_seconds_without_a_sequence_gap():
     assert len(msgs) >= n and msgs["crc_ok"].all()
     assert (np.diff(msgs["sequence"].astype(int)) % 128 == 1).all()
     print(f"\n60 s device time at 1000 Hz, time scale 50: {len(msgs)} messages in {wall:.2f} s wall")
+
+
+# ---------------------------------------------------------------------------------------------
+# the default bench's CAN accelerometer, through the slcan adapter's pty with python-can's slcan
+# ---------------------------------------------------------------------------------------------
+def test_default_bench_can_accelerometer_over_slcan():
+    import can
+
+    sim = Simulator(SimConfig(seed=4, time_scale=10.0, latitude_deg=40.0))
+    ep = sim.start()
+    try:
+        assert ep["can"]["interface"] == "slcan" and ep["can"]["node_id"] == 0x10
+        bus = can.Bus(interface="slcan", channel=ep["can"]["channel"], bitrate=ep["can"]["bitrate"],
+                      sleep_after_open=0.0)
+        try:
+            first = bus.recv(timeout=5.0)  # the node powers on when the adapter's channel opens
+            assert first is not None and (first.arbitration_id, bytes(first.data)) == (0x710, b"\x00")
+            bus.send(can.Message(arbitration_id=0x000, data=[0x01, 0x10], is_extended_id=False))
+            z_ug = []
+            deadline = time.monotonic() + 10.0
+            while len(z_ug) < 50 and time.monotonic() < deadline:
+                msg = bus.recv(timeout=1.0)
+                if msg is not None and msg.arbitration_id == 0x290:
+                    z_ug.append(int.from_bytes(msg.data[:4], "little", signed=True))
+        finally:
+            bus.shutdown()
+    finally:
+        sim.stop()
+    assert len(z_ug) == 50
+    # level platform, table still: z reads local gravity in µg of standard g, within the nav
+    # preset's bias and scale factor and 3σ of its noise at 100 Hz
+    a = ACCEL_PRESETS["nav"]
+    expected_ug = normal_gravity_m_s2(40.0) / 9.80665 * 1e6
+    bound_ug = abs(a.bias_ug[2]) + 3 * a.bias_instability_ug[2] + abs(a.scale_factor_ppm[2]) \
+        + 3 * a.noise_ug_rt_hz[2] * math.sqrt(100.0) / math.sqrt(len(z_ug)) + 1.0  # +1: µg rounding
+    assert abs(np.mean(z_ug) - expected_ug) < bound_ug
