@@ -422,3 +422,60 @@ def test_site_gravity_and_southern_hemisphere():
         assert Site(lat, h).gravity_m_s2 == pytest.approx(somigliana(lat, h), abs=1e-9)
     w, _ = World.static(-40.0, 0.0, table=TableMotion(power_on_deg=0.0)).truth(np.array([0.0]))
     assert w[0, 2] < 0 < w[0, 1]  # Earth rate points down-north in the south
+
+
+class EastboundCar:
+    """A trajectory through the PlatformMotion hook: level, heading east, constant speed."""
+
+    is_static = False
+
+    def __init__(self, speed_m_s: float) -> None:
+        self.speed_m_s = speed_m_s
+
+    def kinematics(self, t_s, site):
+        from firmware_sim.physics.world import PlatformKinematics
+
+        t = np.asarray(t_s, dtype=float)
+        c = np.broadcast_to(c_bn(90.0, 0.0, 0.0), t.shape + (3, 3))
+        z = np.zeros(t.shape + (3,))
+        v = np.zeros(t.shape + (3,))
+        v[..., 0] = self.speed_m_s
+        return PlatformKinematics(c, z, z, v, z)
+
+
+def test_trajectory_hook_coriolis_and_transport_rate():
+    lat, h, v = 45.0, 100.0, 30.0
+    world = World(Site(lat, h), EastboundCar(v), TableMotion(power_on_deg=0.0))
+    w, f = world.truth(np.array([0.0, 1.0]))
+    a, e2 = 6378137.0, (1 / 298.257223563) * (2 - 1 / 298.257223563)
+    r_n = a / math.sqrt(1 - e2 * math.sin(lat * D) ** 2)  # prime-vertical radius
+    w_ie = OMEGA_E * np.array([0.0, math.cos(lat * D), math.sin(lat * D)])
+    w_en = np.array([0.0, v / (r_n + h), v * math.tan(lat * D) / (r_n + h)])
+    v_n = np.array([v, 0.0, 0.0])
+    f_n = np.cross(2 * w_ie + w_en, v_n) + np.array([0.0, 0.0, somigliana(lat, h)])
+    cbn = c_bn(90.0, 0.0, 0.0)
+    np.testing.assert_allclose(w[0], cbn.T @ (w_ie + w_en), rtol=0, atol=1e-18)
+    np.testing.assert_allclose(f[0], cbn.T @ f_n, rtol=0, atol=1e-10)
+    # Coriolis 2Ωe sinL·v (3.1 mm/s²) plus the transport term v² tanL/(R_N + h) (0.14 mm/s²), to
+    # the right of travel: body x points south
+    side = (2 * OMEGA_E * math.sin(lat * D) + v * math.tan(lat * D) / (r_n + h)) * v
+    assert f[0, 0] == pytest.approx(-side, rel=1e-9)
+    assert abs(f[0, 0] + 2 * OMEGA_E * math.sin(lat * D) * v) > 1e-4  # the transport term counts
+
+
+def test_disturbance_is_local_and_absent_faults_change_nothing():
+    plain = static_world(10.0)
+    bumped = static_world(10.0)
+    bumped.add_disturbance(5.0, 0.5, 0.2)
+    for t0 in (0.0, 6.0):  # before and after the bump: bit-identical to the plain world
+        a, b = (
+            plain.increments(t0, 1000, 1e-3, (0.1, 0.0, 0.0)),
+            bumped.increments(t0, 1000, 1e-3, (0.1, 0.0, 0.0)),
+        )
+        assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    a, b = plain.increments(5.0, 500, 1e-3), bumped.increments(5.0, 500, 1e-3)
+    rate_dph = np.abs(b[0] - a[0]).max() * 1000 / (D / 3600)
+    assert rate_dph > 1000  # a 0.2° bump at 2 Hz swings the rate by degrees per second
+    # and it leaves the attitude where it was
+    c_end = bumped.attitude(np.array([5.5]))[0][0]
+    np.testing.assert_allclose(c_end, c_bn(HEADING, PITCH, ROLL), atol=1e-12)
