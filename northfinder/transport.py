@@ -5,7 +5,7 @@ object is private, and the public ``write`` / ``read*`` methods are the only way
 so they are the one place where traffic is logged. Two logs are offered, both optional:
 
 * ``raw_log`` — a binary file that receives every byte *read*, exactly as it arrived (what a
-  replay needs: the IMU's raw stream);
+  replay needs: the IMU's raw stream); a path is truncated, so one file holds one session;
 * ``transcript`` — a text file with one timestamped line per write (``>``) and per read
   (``<``), for a line protocol such as the SMC100's.
 
@@ -116,7 +116,7 @@ class SerialTransport:
         self.timeout_s = timeout_s
         self._serial = open_serial(url, device=device, baudrate=baudrate, timeout_s=timeout_s,
                                    **serial_kwargs)
-        self._raw_log, self._own_raw = _open_log(raw_log, "ab")
+        self._raw_log, self._own_raw = _open_log(raw_log, "wb")  # one session per raw log: replayable
         self._transcript, self._own_transcript = _open_log(transcript, "a")
         self._log_lock = threading.Lock()
         self._t0 = time.monotonic()

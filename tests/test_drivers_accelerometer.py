@@ -3,6 +3,7 @@ from a second bus on the same channel; the driver pairs, counts, logs, and repla
 
 from __future__ import annotations
 
+import os
 import time
 import uuid
 
@@ -64,6 +65,7 @@ def test_golden_pair_emcy_heartbeat_and_nmt(channel, node, golden):
         assert block.accel_g.tolist() == [[1000 / 1e6, -2000 / 1e6, 1.0]]
         assert block.temperature_c.tolist() == [25.12] and block.status.tolist() == [7]
         assert acc.heartbeat_state == 5
+        assert 0.0 <= acc.heartbeat_age_s < 60.0
         assert acc.wait_heartbeat(fresh=False) == 5
 
         em = _golden(golden, "EMCY heartbeat/life guard")
@@ -124,6 +126,7 @@ def test_blf_log_replays_identically_and_other_node_ids(channel, node, tmp_path)
 
 def test_timeouts_name_the_channel(channel, node):
     with Accelerometer("virtual", channel, timeout_s=0.1) as acc:
+        assert acc.heartbeat_age_s is None and acc.heartbeat_state is None
         with pytest.raises(DeviceError, match=f"no heartbeat from node 0x10 on virtual:{channel}"):
             acc.wait_heartbeat(timeout_s=0.1)
         with pytest.raises(DeviceError, match=f"only 0 of 3 samples .* on virtual:{channel}"):
@@ -150,3 +153,24 @@ def test_bad_interface_or_channel_is_one_clear_error(tmp_path):
     assert missing in str(exc.value) and "check the interface, channel and bitrate" in str(exc.value)
     with pytest.raises(DeviceError, match="node_id"):
         Accelerometer("virtual", "x", node_id=200)
+
+
+def _has_vcan0() -> bool:
+    return os.path.exists("/sys/class/net/vcan0")
+
+
+@pytest.mark.skipif(not _has_vcan0(), reason="no vcan0 here (ip link add dev vcan0 type vcan)")
+def test_socketcan_vcan0(golden):
+    node = can.Bus(interface="socketcan", channel="vcan0")
+    try:
+        with Accelerometer("socketcan", "vcan0") as acc:
+            acc.start_node()
+            msg = node.recv(timeout=2)
+            assert msg is not None and msg.data.hex() == _golden(golden, "NMT start node 0x10")["data"]
+            t1 = _golden(golden, "TPDO1 x=+1000 ug, y=-2000 ug")
+            t2 = _golden(golden, "TPDO2 z=1 g, 25.12 C, counter 7, xyz valid")
+            _send(node, t1["id"], t1["data"])
+            _send(node, t2["id"], t2["data"])
+            assert acc.read(1, timeout_s=3).counter.tolist() == [7]
+    finally:
+        node.shutdown()

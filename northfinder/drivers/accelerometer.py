@@ -144,6 +144,7 @@ class Accelerometer:
         self._lock = threading.Condition()
         self._decoder = AccelFrameDecoder(self.codec)
         self._error: BaseException | None = None
+        self._last_heartbeat: float | None = None
         self._logger: can.Listener | None = None
         if log_path is not None:
             Path(log_path).parent.mkdir(parents=True, exist_ok=True)
@@ -159,8 +160,10 @@ class Accelerometer:
         with self._lock:
             self._log(msg)
             if not msg.is_error_frame:
-                self._decoder.feed(msg.arbitration_id, bytes(msg.data), msg.timestamp, msg.is_extended_id,
-                                   msg.is_remote_frame)
+                name = self._decoder.feed(msg.arbitration_id, bytes(msg.data), msg.timestamp,
+                                          msg.is_extended_id, msg.is_remote_frame)
+                if name == "HEARTBEAT":
+                    self._last_heartbeat = time.monotonic()
             self._lock.notify_all()
 
     def _on_error(self, exc: Exception) -> None:
@@ -224,6 +227,13 @@ class Accelerometer:
                 continue
             if last == state:
                 return last
+
+    @property
+    def heartbeat_age_s(self) -> float | None:
+        """Host seconds since the last heartbeat (None before the first): the node watch — more
+        than ~2 heartbeat periods means the node or the bus is gone."""
+        with self._lock:
+            return None if self._last_heartbeat is None else time.monotonic() - self._last_heartbeat
 
     @property
     def heartbeat_state(self) -> int | None:
