@@ -296,3 +296,33 @@ def test_residual_sigma_is_nan_without_degrees_of_freedom():
     w_b, f_b = body_means(angles, c_pn, 40.0)
     sol = solve_heading(angles, w_b[0, :, 1], f_b[0, :, 1], 40.0)
     assert abs(wrap180(sol.heading_deg - 30.0)) < 1e-6 and np.isnan(sol.heading_std_deg)
+
+
+def test_linear_bias_model_removes_an_exactly_linear_drift():
+    c_pn, _, _ = attitude([77.0], [4.0], [200.0])
+    w_b, f_b = body_means(ANGLES_8_MEASURED, c_pn, 40.0)
+    times = np.arange(8) * 70.0 + 30.0
+    drifting = w_b[0] + 3.0 * (times / 600.0)[:, None]  # 3 °/h per 10 min on every axis
+    plain = solve_heading(ANGLES_8_MEASURED, drifting[:, 1], f_b[0, :, 1], 40.0)
+    aware = solve_heading(
+        ANGLES_8_MEASURED, drifting[:, 1], f_b[0, :, 1], 40.0, bias_model="linear", sample_times_s=times
+    )
+    assert abs(wrap180(plain.heading_deg - 77.0)) > 0.5
+    assert abs(wrap180(aware.heading_deg - 77.0)) < 1e-6
+    quad = solve_heading(
+        ANGLES_8_MEASURED, drifting, f_b[0], 40.0, bias_model="quadratic", sample_times_s=times
+    )
+    assert abs(wrap180(quad.heading_deg - 77.0)) < 1e-6
+
+
+def test_sample_count_weights_equal_std_weights():
+    rng = np.random.default_rng(4)
+    c_pn, _, _ = attitude([10.0], [2.0], [50.0])
+    w_b, f_b = body_means(ANGLES_8_MEASURED, c_pn, 40.0)
+    counts = rng.integers(500, 5000, size=8)
+    noisy = w_b[0, :, 1] + rng.standard_normal(8) * 0.5 / np.sqrt(counts)
+    by_count = solve_heading(ANGLES_8_MEASURED, noisy, f_b[0, :, 1], 40.0, sample_count=counts)
+    by_std = solve_heading(ANGLES_8_MEASURED, noisy, f_b[0, :, 1], 40.0, gyro_std_dph=0.5 / np.sqrt(counts))
+    equal = solve_heading(ANGLES_8_MEASURED, noisy, f_b[0, :, 1], 40.0)
+    assert by_count.heading_deg == pytest.approx(by_std.heading_deg, abs=1e-9)
+    assert abs(by_count.heading_deg - equal.heading_deg) > 1e-6
