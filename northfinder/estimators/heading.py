@@ -134,7 +134,9 @@ def _std_for(std, n: int, three: bool, name: str) -> np.ndarray | None:
 
 
 def _up_vector(fx, fy, g_local_g: float) -> np.ndarray:
-    """u^p = [f_x, f_y, √(g² − f_x² − f_y²)] / g from the fitted platform specific force.
+    """u^p = [f_x, f_y, √(g² − f_x² − f_y²)] / g from the fitted platform specific force (eq 9).
+
+    With a_A = f_y, b_A = −f_x (eq 5) the tilt acos(u_z) is eq 9's asin(√(a_A² + b_A²)/g).
 
     Only the modulated x/y components enter (their biases are fitted away, eq 5); the b-z
     accelerometer, whose bias cannot be separated, is used only to check |f| and that z is up.
