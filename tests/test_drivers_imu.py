@@ -216,6 +216,8 @@ def test_query_outside_config_mode_enters_and_leaves():
 
 
 def test_configure_rejects_bad_values_and_silence():
+    with pytest.raises(ConfigError, match="rot_format"):
+        Imu("expected://kvh", transport=ExpectedBytes([]), rot_format="ANGLE")
     with Imu("expected://kvh", transport=ExpectedBytes([]), wait_for_data=False) as imu:
         with pytest.raises(ConfigError, match="rate_hz 333"):
             imu.configure(rate_hz=333)

@@ -117,7 +117,10 @@ class Imu:
         self.rate_hz = float(rate_hz)
         self.rot_format = rot_format.upper()
         self.rot_units = rot_units.upper()
-        kvh.gyro_scale_to_rad_s(self.rate_hz, self.rot_format, self.rot_units)  # validates
+        try:
+            kvh.gyro_scale_to_rad_s(self.rate_hz, self.rot_format, self.rot_units)
+        except ValueError as exc:
+            raise ConfigError(f"imu: {exc}") from None
         self._t = transport if transport is not None else SerialTransport(
             port, device=DEVICE, baudrate=baudrate, timeout_s=0.05, raw_log=raw_log
         )
