@@ -111,7 +111,18 @@ def zxy_rotation(z, x, y, z_dot, x_dot, y_dot, z_ddot, x_ddot, y_ddot):
     Returns (C [...,3,3], ω [...,3], ω̇ [...,3]). For an attitude, z = −ψ, x = θ, y = γ.
     """
     cx, sx, cy, sy = np.cos(x), np.sin(x), np.cos(y), np.sin(y)
-    c = rot_z(z) @ rot_x(x) @ rot_y(y)
+    cz, sz = np.cos(z), np.sin(z)
+    # Rz(z)·Rx(x)·Ry(y) multiplied out (batched 3×3 matmuls are slow in numpy)
+    c = np.empty(np.shape(cx) + (3, 3))
+    c[..., 0, 0] = cz * cy - sz * sx * sy
+    c[..., 0, 1] = -sz * cx
+    c[..., 0, 2] = cz * sy + sz * sx * cy
+    c[..., 1, 0] = sz * cy + cz * sx * sy
+    c[..., 1, 1] = cz * cx
+    c[..., 1, 2] = sz * sy - cz * sx * cy
+    c[..., 2, 0] = -cx * sy
+    c[..., 2, 1] = sx
+    c[..., 2, 2] = cx * cy
     w = np.stack([cy * x_dot - sy * cx * z_dot, sx * z_dot + y_dot, sy * x_dot + cy * cx * z_dot], axis=-1)
     w_dot = np.stack(
         [
@@ -136,3 +147,24 @@ def rot_z_transpose_apply(alpha, v) -> np.ndarray:
     return np.stack(
         [c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1], v[..., 2] + 0.0 * c], axis=-1
     )
+
+
+def cross(a, b) -> np.ndarray:
+    """a × b over the last axis (np.cross without its axis shuffling), broadcast."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
+
+
+def transpose_apply(c, v) -> np.ndarray:
+    """Cᵀ·v for batched 3×3 matrices C [...,3,3] and vectors v [...,3]."""
+    c = np.asarray(c)
+    v = np.asarray(v)
+    return c[..., 0, :] * v[..., 0:1] + c[..., 1, :] * v[..., 1:2] + c[..., 2, :] * v[..., 2:3]

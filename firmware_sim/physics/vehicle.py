@@ -114,6 +114,8 @@ class VehicleTrajectory:
     Parameters: initial heading [deg], start position in local ENU [m], the speed and turn
     schedule, and the suspension gains: pitch per longitudinal acceleration and roll per
     lateral acceleration [rad per m/s²] (nose up when accelerating, body rolls out of a turn).
+    Road roughness: `road_pitch` / `road_roll` are (amplitude_deg, frequency_hz, phase_deg)
+    sinusoids of body pitch/roll scaled by speed / road_ref_speed_m_s, so they vanish when stopped.
     """
 
     heading0_deg: float = 30.0
@@ -122,6 +124,9 @@ class VehicleTrajectory:
     turns: list[Turn] = field(default_factory=lambda: default_schedule()[1])
     pitch_per_accel_rad: float = 0.01
     roll_per_accel_rad: float = 0.01
+    road_pitch: tuple[tuple[float, float, float], ...] = ((0.3, 1.3, 0.0), (0.15, 2.1, 40.0))
+    road_roll: tuple[tuple[float, float, float], ...] = ((0.4, 0.9, 20.0), (0.2, 1.7, 70.0))
+    road_ref_speed_m_s: float = 10.0
     duration_s: float = 300.0
     _cell_s: float = 0.05
 
@@ -207,9 +212,24 @@ class VehicleTrajectory:
         v, vd, vdd, vddd = self.speed_m_s(t_s, jerk=True)
         psi, rate, acc, jrk = self.heading_rad(t_s, jerk=True)
         kp, kr = self.pitch_per_accel_rad, self.roll_per_accel_rad
-        pitch = (kp * vd, kp * vdd, kp * vddd)
-        roll = (-kr * v * rate, -kr * (vd * rate + v * acc), -kr * (vdd * rate + 2 * vd * acc + v * jrk))
+        pitch = np.array([kp * vd, kp * vdd, kp * vddd])
+        roll = -kr * np.array([v * rate, vd * rate + v * acc, vdd * rate + 2 * vd * acc + v * jrk])
+        t = np.asarray(t_s, dtype=float)
+        pitch = pitch + self._road(t, self.road_pitch, v, vd, vdd)
+        roll = roll + self._road(t, self.road_roll, v, vd, vdd)
         return (psi, pitch[0], roll[0]), (rate, pitch[1], roll[1]), (acc, pitch[2], roll[2])
+
+    def _road(self, t, terms, v, vd, vdd) -> np.ndarray:
+        """Σ A·s(t)·sin(ωt + φ) with s = v/v_ref, and its first two derivatives (product rule)."""
+        s, sd, sdd = v / self.road_ref_speed_m_s, vd / self.road_ref_speed_m_s, vdd / self.road_ref_speed_m_s
+        out = np.zeros((3,) + np.shape(t))
+        for amp_deg, f_hz, ph_deg in terms:
+            a, w = np.deg2rad(amp_deg), 2 * np.pi * f_hz
+            sn, cs = np.sin(w * t + np.deg2rad(ph_deg)), np.cos(w * t + np.deg2rad(ph_deg))
+            out[0] += a * s * sn
+            out[1] += a * (sd * sn + s * w * cs)
+            out[2] += a * (sdd * sn + 2 * sd * w * cs - s * w * w * sn)
+        return out
 
     def attitude(self, t_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(C_b^n [N,3,3], ω_nb^b [N,3] rad/s, ω̇_nb^b [N,3] rad/s²) with C_b^n = Rz(−ψ)Rx(θ)Ry(γ)."""
@@ -237,5 +257,85 @@ class VehicleTrajectory:
         lat0 = np.deg2rad(site.latitude_deg)
         r_m, _ = earth.radii_m(lat0)
         lat = lat0 + pos[..., 1] / (r_m + site.height_m)
-        return PlatformKinematics(c, w, wd, self.velocity_enu_m_s(t), self.acceleration_enu_m_s2(t), lat,
-                                  site.height_m + pos[..., 2])
+        return PlatformKinematics(
+            c,
+            w,
+            wd,
+            self.velocity_enu_m_s(t),
+            self.acceleration_enu_m_s2(t),
+            lat,
+            site.height_m + pos[..., 2],
+        )
+
+    # -- GNSS antenna ----------------------------------------------------------------------------
+    def antenna_enu(self, t_s, lever_arm_b_m) -> tuple[np.ndarray, np.ndarray]:
+        """Position [N,3] and velocity [N,3] in local ENU of a point at lever arm r^b from the IMU:
+        p + C_b^n r and v + C_b^n(ω_nb^b × r)."""
+        r = np.asarray(lever_arm_b_m, dtype=float)
+        c, w, _ = self.attitude(t_s)
+        pos = self.position_enu_m(t_s) + np.einsum("...ij,j->...i", c, r)
+        vel = self.velocity_enu_m_s(t_s) + np.einsum("...ij,...j->...i", c, np.cross(w, r))
+        return pos, vel
+
+
+@dataclass
+class SimulatedDrive:
+    """One simulated drive: IMU increments (measured), GNSS fixes of the antenna (noisy), truth."""
+
+    rate_hz: float
+    dtheta_rad: np.ndarray
+    dv_m_s: np.ndarray
+    gnss_t_s: np.ndarray
+    gnss_pos_enu_m: np.ndarray
+    gnss_vel_enu_m_s: np.ndarray
+    gnss_pos_std_m: tuple[float, float, float]
+    gnss_vel_std_m_s: tuple[float, float, float]
+    lever_arm_b_m: tuple[float, float, float]
+    site: Site
+    trajectory: VehicleTrajectory
+
+
+def simulate_drive(
+    trajectory: VehicleTrajectory | None = None,
+    *,
+    site: Site | None = None,
+    grade: str = "kvh1760",
+    seed: int = 0,
+    rate_hz: float = 250.0,
+    gnss_rate_hz: float = 10.0,
+    lever_arm_b_m: tuple[float, float, float] = (0.5, 1.5, 1.2),
+    gnss_pos_std_m: tuple[float, float, float] = (0.5, 0.5, 1.0),
+    gnss_vel_std_m_s: tuple[float, float, float] = (0.05, 0.05, 0.05),
+) -> SimulatedDrive:
+    """The World's truth for the vehicle (IMU at the platform reference point, no turntable),
+    the grade's GyroModel/AccelModel, and white-noise GNSS fixes of the antenna at gnss_rate_hz."""
+    from firmware_sim.physics.sensors import AccelModel, GyroModel, accel_errors, gyro_errors
+    from firmware_sim.physics.table import TableMotion
+    from firmware_sim.physics.world import World
+
+    traj = trajectory or VehicleTrajectory()
+    site = site or Site(40.0, 100.0)
+    world = World(site, traj, TableMotion(power_on_deg=0.0, ringing_amplitude_deg=None))
+    n = int(round(traj.duration_s * rate_hz))
+    dth, dv = world.increments(0.0, n, 1.0 / rate_hz)
+    seeds = np.random.SeedSequence(seed).spawn(3)
+    dth = GyroModel(gyro_errors(grade), rate_hz, np.random.default_rng(seeds[0])).apply(dth)
+    dv = AccelModel(accel_errors(grade), rate_hz, np.random.default_rng(seeds[1])).apply(dv)
+    t_g = np.arange(1, int(np.floor(traj.duration_s * gnss_rate_hz)) + 1) / gnss_rate_hz
+    pos, vel = traj.antenna_enu(t_g, lever_arm_b_m)
+    rng = np.random.default_rng(seeds[2])
+    pos = pos + rng.standard_normal(pos.shape) * np.asarray(gnss_pos_std_m)
+    vel = vel + rng.standard_normal(vel.shape) * np.asarray(gnss_vel_std_m_s)
+    return SimulatedDrive(
+        rate_hz,
+        dth,
+        dv,
+        t_g,
+        pos,
+        vel,
+        tuple(gnss_pos_std_m),
+        tuple(gnss_vel_std_m_s),
+        tuple(lever_arm_b_m),
+        site,
+        traj,
+    )

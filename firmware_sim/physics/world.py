@@ -265,11 +265,11 @@ class World:
             e, w_e, wd_e = earth.zxy_rotation(
                 -wy * dl, wp * dl, wr * dl, -wy * dl1, wp * dl1, wr * dl1, -wy * dl2, wp * dl2, wr * dl2
             )
-            et_w = np.einsum("...ji,...j->...i", e, w_np)  # Eᵀ ω
-            et_wd = np.einsum("...ji,...j->...i", e, wd_np)
+            et_w = earth.transpose_apply(e, w_np)  # Eᵀ ω
+            et_wd = earth.transpose_apply(e, wd_np)
             c = c @ e
             w_np = et_w + w_e
-            wd_np = et_wd - np.cross(w_e, et_w) + wd_e
+            wd_np = et_wd - earth.cross(w_e, et_w) + wd_e
         return c, w_np, wd_np
 
     def _platform_p(self, t: np.ndarray):
@@ -287,11 +287,11 @@ class World:
         w_in = w_ie + w_en
         g_n = np.zeros(t.shape + (3,))
         g_n[..., 2] = -earth.normal_gravity_m_s2(lat / DEG, h)
-        f_n = k.acc_enu_m_s2 + np.cross(2.0 * w_ie + w_en, k.vel_enu_m_s) - g_n
-        cnp_w_in = np.einsum("...ji,...j->...i", c, w_in)  # C_n^p ω_in^n
+        f_n = k.acc_enu_m_s2 + earth.cross(2.0 * w_ie + w_en, k.vel_enu_m_s) - g_n
+        cnp_w_in = earth.transpose_apply(c, w_in)  # C_n^p ω_in^n
         w_ip = cnp_w_in + w_np
-        wd_ip = -np.cross(w_np, cnp_w_in) + wd_np
-        f_p = np.einsum("...ji,...j->...i", c, f_n)
+        wd_ip = -earth.cross(w_np, cnp_w_in) + wd_np
+        f_p = earth.transpose_apply(c, f_n)
         return w_ip, wd_ip, f_p
 
     # -- truth ----------------------------------------------------------------------------------
@@ -309,7 +309,7 @@ class World:
             wd_b = earth.rot_z_transpose_apply(alpha, np.broadcast_to(wd_ip, shape))
             wd_b[..., 0] += ad * w_rot[..., 1]
             wd_b[..., 1] -= ad * w_rot[..., 0]
-            f_b = f_b + np.cross(wd_b, r) + np.cross(w_b, np.cross(w_b, r))
+            f_b = f_b + earth.cross(wd_b, r) + earth.cross(w_b, earth.cross(w_b, r))
         return w_rot, f_b, (alpha, ad, add)
 
     def truth(self, t_s, lever_arm_b_m=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
@@ -318,7 +318,7 @@ class World:
         r = np.asarray(lever_arm_b_m, dtype=float)
         w_rot, f_b, (_, ad, add) = self._truth_parts(t, r)
         w_rot[..., 2] += ad
-        return w_rot, f_b + add[..., None] * np.cross(earth.EZ, r)
+        return w_rot, f_b + add[..., None] * earth.cross(earth.EZ, r)
 
     def increments(self, t0_s: float, n: int, dt_s: float, lever_arm_b_m=(0.0, 0.0, 0.0)):
         """(Δθ [n,3] rad, Δv [n,3] m/s): ∫ω_ib^b and ∫f^b over [t0 + k·dt, t0 + (k+1)·dt], k < n.
@@ -351,5 +351,5 @@ class World:
         alpha, ad, _ = self.table.kinematics(edges)
         dtheta[:, 2] += np.diff(alpha)
         if np.any(r):
-            dv += np.diff(ad)[:, None] * np.cross(earth.EZ, r)
+            dv += np.diff(ad)[:, None] * earth.cross(earth.EZ, r)
         return dtheta, dv
