@@ -123,12 +123,14 @@ class NavState:
 
 @dataclass
 class ChunkSummary:
-    """What a filter needs from one propagation call: mean body rate and specific force, heading change."""
+    """What a filter needs from one propagation call: mean body rate and specific force, heading
+    change, and the body rate of the last sample (for lever-arm velocities at the chunk's end)."""
 
     dt_s: float
     omega_ib_b_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
     f_b_m_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
     dheading_rad: float = 0.0
+    omega_end_b_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 class Strapdown:
@@ -191,7 +193,7 @@ class Strapdown:
             self._chunk(body_q[k0 : k0 + self.chunk], dvb[k0 : k0 + self.chunk])
         dpsi = (self.heading_rad() - psi0 + math.pi) % (2.0 * math.pi) - math.pi
         t = n * self.dt_s
-        return ChunkSummary(t, dtheta.sum(axis=0) / t, dv.sum(axis=0) / t, dpsi)
+        return ChunkSummary(t, dtheta.sum(axis=0) / t, dv.sum(axis=0) / t, dpsi, dtheta[-1] / self.dt_s)
 
     def _chunk(self, body_q: list, dvb: list) -> None:
         s = self.state

@@ -1,0 +1,516 @@
+"""GNSS-aided strapdown alignment from any initial heading: the δsin/δcos filter of the seed paper.
+
+Paper: Wang Zhiwei et al., "Initial alignment of GPS/INS moving base with large misalignment
+angle", Piezoelectrics & Acoustooptics 40(3), 2018 (../shared/papers/gnss-ins-large-misalignment-
+alignment.zh.txt), eq 1–23; the derivation in our frames is in docs/gnss-alignment.md.
+
+What: an error-state Kalman filter around the strapdown mechanization (strapdown.py). The
+attitude is split as C_b^n = C_h^n(ψ)·C_b^h(θ, γ) with C_h^n = Rz(−ψ) (eq 1). The heading error
+is carried as η1 = sin ψ̂ − sin ψ, η2 = cos ψ̂ − cos ψ — the paper's δsin β, δcos β — in which
+the attitude error δC = Ĉ_b^n − C_b^n is *exactly* linear at any heading error, and the small
+tilt error as ε = (εx, εy) in the h frame (the paper's φx, φy). State (eq 22), 19 elements:
+
+    x = [δP (3, ENU m), δV (3, m/s), η1, η2, εx, εy, δf (3, accel bias, b), δω (3, gyro bias, b),
+         δla (3, lever arm, b)]                       all as "estimate − truth"
+
+GNSS measures the antenna, at lever arm la^b from the IMU: position (eq 15–18) and velocity with
+the body rate (eq 19–21). After every update every estimate is fed back and the state reset to
+zero (eq 23); the attitude is re-orthonormalized.
+
+Why: with the lever arm the position residual δC·la depends on the heading error directly, so
+heading is observable from the first turn, and the sin/cos parametrization keeps the filter
+linear where a small-angle filter (small_angle.py) is not.
+
+Inputs as the drivers deliver them: IMU rate-format samples (`gyro_rad_s`, `accel_g`) at a known
+rate with a sample index, and GNSS fixes of the antenna (time, local ENU position or lat/lon/alt,
+ENU velocity, σ).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from northfinder.align.strapdown import (
+    ChunkSummary,
+    LocalLevel,
+    NavState,
+    Strapdown,
+    earth_rate_n,
+    increments_from_rates,
+    orthonormalize,
+    transport_rate_n,
+)
+from northfinder.constants import DPH, STANDARD_GRAVITY_M_S2, normal_gravity_m_s2
+from northfinder.errors import InputError
+from northfinder.rotations import dcm_from_euler, rot_z, skew
+
+# State layout shared by both filters: position, velocity, attitude block, biases, lever arm.
+P_, V_ = slice(0, 3), slice(3, 6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Inputs and outputs
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class ImuSeries:
+    """IMU samples in rate format: sample with index k integrates [t0 + k/rate, t0 + (k+1)/rate].
+
+    `gyro_rad_s` [n,3] (Δθ·rate for a delta-format IMU), `accel_g` [n,3] in standard g. Missing
+    indices (lost samples) are filled by repeating the previous sample.
+    """
+
+    rate_hz: float
+    gyro_rad_s: np.ndarray
+    accel_g: np.ndarray
+    sample_index: np.ndarray | None = None
+    t0_s: float = 0.0
+
+    @classmethod
+    def from_increments(cls, dtheta_rad, dv_m_s, rate_hz: float, t0_s: float = 0.0) -> ImuSeries:
+        """From Δθ [rad] and Δv [m/s] per sample (simulator output)."""
+        return cls(rate_hz, np.asarray(dtheta_rad) * rate_hz,
+                   np.asarray(dv_m_s) * rate_hz / STANDARD_GRAVITY_M_S2, None, t0_s)
+
+    def increments(self) -> tuple[np.ndarray, np.ndarray]:
+        """Dense (Δθ, Δv) from index 0 to the last index, gaps filled by the previous sample."""
+        dth, dv = increments_from_rates(self.gyro_rad_s, self.accel_g, self.rate_hz)
+        if self.sample_index is None:
+            return dth, dv
+        idx = np.asarray(self.sample_index, dtype=np.int64)
+        if np.any(np.diff(idx) <= 0):
+            raise InputError("IMU sample_index must increase strictly (unwrap the sequence counter first)")
+        idx = idx - idx[0]
+        pos = np.searchsorted(idx, np.arange(idx[-1] + 1), side="right") - 1
+        return dth[pos], dv[pos]
+
+
+@dataclass
+class GnssSeries:
+    """GNSS fixes of the ANTENNA: device time [s], local ENU position [m] about `origin`, ENU velocity
+    [m/s] and their 1σ per axis. `origin` = (lat_deg, lon_deg, h_m) of the local ENU frame."""
+
+    t_s: np.ndarray
+    pos_enu_m: np.ndarray
+    vel_enu_m_s: np.ndarray
+    pos_std_m: np.ndarray
+    vel_std_m_s: np.ndarray
+    origin: tuple[float, float, float]
+
+    @classmethod
+    def from_geodetic(cls, t_s, lat_deg, lon_deg, alt_m, vel_enu_m_s, *, pos_std_m=(0.5, 0.5, 1.0),
+                      vel_std_m_s=(0.05, 0.05, 0.05), origin=None) -> GnssSeries:
+        """From receiver lat/lon/alt; the origin defaults to the first fix."""
+        lat, lon, alt = (np.asarray(a, dtype=float) for a in (lat_deg, lon_deg, alt_m))
+        origin = origin or (float(lat[0]), float(lon[0]), float(alt[0]))
+        ll = LocalLevel(math.radians(origin[0]), math.radians(origin[1]), origin[2])
+        pos = ll.to_enu(np.deg2rad(lat), np.deg2rad(lon), alt)
+        n = len(lat)
+        return cls(np.asarray(t_s, float), pos, np.asarray(vel_enu_m_s, float),
+                   np.broadcast_to(np.asarray(pos_std_m, float), (n, 3)).copy(),
+                   np.broadcast_to(np.asarray(vel_std_m_s, float), (n, 3)).copy(), origin)
+
+    def local_level(self) -> LocalLevel:
+        return LocalLevel(math.radians(self.origin[0]), math.radians(self.origin[1]), self.origin[2])
+
+
+@dataclass
+class GnssAlignConfig:
+    """Priors and noise of the alignment filters (defaults: a KVH-1760-class IMU, a code GNSS).
+
+    heading_std_deg None means "heading unknown": the sin/cos filter then starts from the moments
+    of a uniform heading error; the small-angle filter needs a number (default 30° for it).
+    lever_arm_std_m 0 keeps the lever arm fixed at `lever_arm_b_m` (not estimated).
+    `converged_std_deg`: converged_after_s is the first time after which the heading 1σ stays
+    below it until the end.
+    """
+
+    heading_std_deg: float | None = None
+    tilt_std_deg: float = 0.5
+    vel_std_m_s: float = 0.1
+    lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    lever_arm_std_m: float = 1.0
+    gyro_bias_std_dph: float = 1.0
+    accel_bias_std_ug: float = 1000.0
+    gyro_arw_deg_sqrt_h: float = 0.05
+    accel_vrw_ug_sqrt_hz: float = 300.0
+    gyro_bias_rw_dph_sqrt_s: float = 0.001
+    accel_bias_rw_ug_sqrt_s: float = 1.0
+    level_s: float = 5.0
+    converged_std_deg: float = 1.0
+
+
+@dataclass
+class GnssAlignHistory:
+    """Filter time histories, one row per GNSS update (arrays)."""
+
+    t_s: np.ndarray
+    heading_deg: np.ndarray
+    heading_std_deg: np.ndarray
+    pitch_deg: np.ndarray
+    roll_deg: np.ndarray
+    pos_enu_m: np.ndarray
+    pos_std_m: np.ndarray
+    vel_enu_m_s: np.ndarray
+    lever_arm_m: np.ndarray
+    lever_arm_std_m: np.ndarray
+    gyro_bias_dph: np.ndarray
+    gyro_bias_std_dph: np.ndarray
+    accel_bias_ug: np.ndarray
+    accel_bias_std_ug: np.ndarray
+    innovation: np.ndarray
+
+
+@dataclass
+class GnssAlignResult:
+    """Final alignment: heading with 1σ, attitude, lever arm, biases, convergence time, histories."""
+
+    method: str
+    heading_deg: float
+    heading_std_deg: float
+    pitch_deg: float
+    roll_deg: float
+    lever_arm_m: np.ndarray
+    lever_arm_std_m: np.ndarray
+    gyro_bias_dph: np.ndarray
+    accel_bias_ug: np.ndarray
+    pos_enu_m: np.ndarray
+    converged_after_s: float | None
+    start_s: float
+    history: GnssAlignHistory
+    extra: dict = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------------
+# The error-state filter machinery shared with the small-angle filter
+# ---------------------------------------------------------------------------------------------
+class _ErrorStateFilter:
+    """Error-state Kalman filter around a Strapdown; subclasses define the attitude error block."""
+
+    method = "?"
+    n_att = 0
+
+    def __init__(self, ins: Strapdown, config: GnssAlignConfig, initial_heading_rad: float):
+        self.ins = ins
+        self.cfg = config
+        na = self.n_att
+        self.A = slice(6, 6 + na)
+        self.BA = slice(6 + na, 9 + na)
+        self.BG = slice(9 + na, 12 + na)
+        self.LA = slice(12 + na, 15 + na)
+        self.n = 15 + na
+        self.lever_arm_b_m = np.asarray(config.lever_arm_b_m, dtype=float).copy()
+        self.estimate_lever = config.lever_arm_std_m > 0.0
+        p0 = np.zeros(self.n)
+        p0[V_] = config.vel_std_m_s**2
+        p0[self.BA] = (config.accel_bias_std_ug * 1e-6 * STANDARD_GRAVITY_M_S2) ** 2
+        p0[self.BG] = (config.gyro_bias_std_dph * DPH) ** 2
+        p0[self.LA] = config.lever_arm_std_m**2
+        self.P = np.diag(p0)
+        self.P[self.A, self.A] = self.attitude_prior(initial_heading_rad)
+        self.omega_nb_b = np.zeros(3)
+
+    # -- subclass hooks --------------------------------------------------------------------------
+    def attitude_prior(self, heading_rad: float) -> np.ndarray:
+        raise NotImplementedError
+
+    def attitude_jacobian(self, u_b: np.ndarray) -> np.ndarray:
+        """J with δC·u ≈ J·x_att (3 × n_att), for a body vector u."""
+        raise NotImplementedError
+
+    def attitude_dynamics(self, F, G, s: ChunkSummary, w_in: np.ndarray) -> None:
+        """Fill the attitude rows of F and the gyro-noise columns of G."""
+        raise NotImplementedError
+
+    def attitude_feedback(self, x_att: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def heading_var(self) -> float:
+        raise NotImplementedError
+
+    # -- time update -----------------------------------------------------------------------------
+    def predict(self, s: ChunkSummary) -> None:
+        """Covariance propagation over one IMU chunk: Φ = exp(F·Δt) (3rd-order series), Q = G Qc Gᵀ Δt.
+
+        Velocity error equation: paper eq 14 with δC from eq 7, in our frames
+        δV̇ = δC f^b + Ĉ δf − (2ω_ie + ω_en) × δV + δg (docs/gnss-alignment.md §3).
+        """
+        if s.dt_s <= 0.0:
+            return
+        st = self.ins.state
+        c = st.c_bn
+        lat, h = self.ins.origin.lat_h(st.pos_enu_m)
+        w_ie = earth_rate_n(lat)
+        w_en = transport_rate_n(lat, h, st.v_enu_m_s)
+        n, dt = self.n, s.dt_s
+        F = np.zeros((n, n))
+        G = np.zeros((n, 12))
+        F[P_, V_] = np.eye(3)
+        F[V_, V_] = -skew(2.0 * w_ie + w_en)
+        F[5, 2] = 2.0 * float(normal_gravity_m_s2(math.degrees(lat), h)) / self.ins.origin.k_n
+        F[V_, self.A] = self.attitude_jacobian(s.f_b_m_s2)
+        F[V_, self.BA] = c
+        G[V_, 3:6] = c
+        self.attitude_dynamics(F, G, s, w_ie + w_en)
+        G[self.BA, 6:9] = np.eye(3)
+        G[self.BG, 9:12] = np.eye(3)
+        cfg = self.cfg
+        qc = np.concatenate([
+            np.full(3, (cfg.gyro_arw_deg_sqrt_h * math.pi / 180.0 / 60.0) ** 2),
+            np.full(3, (cfg.accel_vrw_ug_sqrt_hz * 1e-6 * STANDARD_GRAVITY_M_S2) ** 2),
+            np.full(3, (cfg.accel_bias_rw_ug_sqrt_s * 1e-6 * STANDARD_GRAVITY_M_S2) ** 2),
+            np.full(3, (cfg.gyro_bias_rw_dph_sqrt_s * DPH) ** 2),
+        ])
+        fdt = F * dt
+        phi = np.eye(n) + fdt @ (np.eye(n) + fdt @ (np.eye(n) + fdt / 3.0) / 2.0)
+        q = (G * qc) @ G.T * dt
+        self.P = phi @ self.P @ phi.T + 0.5 * (phi @ q @ phi.T + q)
+        if not self.estimate_lever:
+            self.P[self.LA, :] = 0.0
+            self.P[:, self.LA] = 0.0
+        # body rate at the chunk's end (last sample), not the chunk mean: a 50 ms lag would shrink
+        # the lever-arm velocity of a 1–2 Hz body motion by 5–20 % and bias the lever arm estimate
+        self.omega_nb_b = s.omega_end_b_rad_s - c.T @ (w_ie + w_en)
+
+    # -- measurement update ----------------------------------------------------------------------
+    def update(self, pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s: float) -> np.ndarray:
+        """GNSS antenna position and velocity update with the lever arm (paper eq 15–21), then
+        feedback of every estimate (eq 23). Returns the innovation [6]."""
+        st = self.ins.state
+        c = st.c_bn
+        la = self.lever_arm_b_m
+        w_la = np.cross(self.omega_nb_b, la)
+        v_ant = st.v_enu_m_s + c @ w_la
+        # eq 17: δP_meas = P̂ + Ĉ l̂a − P_GNSS (extrapolated to the fix time within one IMU sample)
+        z = np.concatenate([st.pos_enu_m + c @ la + v_ant * dt_fix_s - pos_m, v_ant - vel_m_s])
+        H = np.zeros((6, self.n))
+        H[0:3, P_] = np.eye(3)
+        H[0:3, self.A] = self.attitude_jacobian(la)  # eq 18: δC·la
+        H[0:3, self.LA] = c  # eq 18: Ĉ δla
+        H[3:6, V_] = np.eye(3)
+        H[3:6, self.A] = self.attitude_jacobian(w_la)  # eq 21: δC (ω_nb^b × la)
+        H[3:6, self.LA] = c @ skew(self.omega_nb_b)  # eq 21: Ĉ (ω_nb^b ×) δla
+        H[3:6, self.BG] = -c @ skew(la)  # gyro bias in ω_nb^b × la
+        R = np.diag(np.concatenate([np.asarray(pos_std_m, float) ** 2, np.asarray(vel_std_m_s, float) ** 2]))
+        S = H @ self.P @ H.T + R
+        K = np.linalg.solve(S, H @ self.P).T
+        x = K @ z
+        ikh = np.eye(self.n) - K @ H
+        self.P = ikh @ self.P @ ikh.T + K @ R @ K.T  # Joseph form
+        self.feedback(x)
+        return z
+
+    def feedback(self, x: np.ndarray) -> None:
+        """Paper eq 23: every estimate corrects the INS and the sensors; the error state resets to 0."""
+        st = self.ins.state
+        st.pos_enu_m = st.pos_enu_m - x[P_]
+        st.v_enu_m_s = st.v_enu_m_s - x[V_]
+        self.attitude_feedback(x[self.A])
+        self.ins.accel_bias_m_s2 = self.ins.accel_bias_m_s2 + x[self.BA]
+        self.ins.gyro_bias_rad_s = self.ins.gyro_bias_rad_s + x[self.BG]
+        if self.estimate_lever:
+            self.lever_arm_b_m = self.lever_arm_b_m - x[self.LA]
+
+
+def _heading_split(c_bn: np.ndarray) -> tuple[float, np.ndarray]:
+    """ψ and C_b^h = Rz(ψ)·C_b^n (paper eq 1: C_b^n = C_h^n C_b^h with C_h^n = Rz(−ψ))."""
+    psi = math.atan2(c_bn[0, 1], c_bn[1, 1])
+    return psi, rot_z(psi) @ c_bn
+
+
+class SinCosFilter(_ErrorStateFilter):
+    """The paper's filter: attitude error block [η1, η2, εx, εy] (eq 7–8, 13, 22)."""
+
+    method = "sincos"
+    n_att = 4
+
+    def attitude_prior(self, heading_rad: float) -> np.ndarray:
+        """Second moments of (sin δψ, 1 − cos δψ) for δψ ~ N(0, σ²) or uniform, rotated into η."""
+        sd = self.cfg.heading_std_deg
+        if sd is None:
+            m_s2, m_c2 = 0.5, 1.5  # uniform δψ: E[sin²] = ½, E[(1 − cos)²] = 3/2
+        else:
+            v = math.radians(sd) ** 2
+            m_s2 = 0.5 * (1.0 - math.exp(-2.0 * v))
+            m_c2 = 1.0 - 2.0 * math.exp(-0.5 * v) + 0.5 * (1.0 + math.exp(-2.0 * v))
+        # [sin δψ, 1 − cos δψ] = Rot·[η1, η2], Rot = [[ĉ, −ŝ], [ŝ, ĉ]] (docs/gnss-alignment.md §2)
+        c, s = math.cos(heading_rad), math.sin(heading_rad)
+        rot = np.array([[c, -s], [s, c]])
+        out = np.zeros((4, 4))
+        out[0:2, 0:2] = rot.T @ np.diag([m_s2, m_c2]) @ rot
+        out[2:4, 2:4] = np.eye(2) * math.radians(self.cfg.tilt_std_deg) ** 2
+        return out
+
+    def attitude_jacobian(self, u_b: np.ndarray) -> np.ndarray:
+        """δC·u = D·C_b^h·u (eq 7) with D of eq 8 in our frames:
+        D = [[η2, η1, −(ĉεy − ŝεx)], [−η1, η2, ŝεy + ĉεx], [εy, −εx, 0]]."""
+        psi, c_bh = _heading_split(self.ins.state.c_bn)
+        c, s = math.cos(psi), math.sin(psi)
+        ux, uy, uz = c_bh @ np.asarray(u_b, float)
+        return np.array([
+            [uy, ux, s * uz, -c * uz],
+            [-ux, uy, c * uz, s * uz],
+            [0.0, 0.0, -uy, ux],
+        ])
+
+    def attitude_dynamics(self, F, G, s: ChunkSummary, w_in: np.ndarray) -> None:
+        """Attitude error equation (paper eq 9–13), derived for ENU / clockwise ψ:
+        η̇1 = ψ̇η2 + ĉ·δψ̇,  η̇2 = −ψ̇η1 − ŝ·δψ̇,  δψ̇ = −(C_b^h δω)_z + (φ_n × ω_in)_z,
+        ε̇ = ψ̇ [−εy, εx] − (C_b^h δω)_xy − Rz(ψ̂)(R_δ − I)ω_in + ω_U [εy, −εx]."""
+        psi, c_bh = _heading_split(self.ins.state.c_bn)
+        psi -= 0.5 * s.dheading_rad  # mid-chunk heading
+        c, sn = math.cos(psi), math.sin(psi)
+        rate = s.dheading_rad / s.dt_s
+        we, wn, wu = w_in
+        a = self.A.start
+        E, T = slice(a, a + 2), slice(a + 2, a + 4)
+        g_vec = np.array([c, -sn])
+        rz_minus = np.array([[c, sn], [-sn, c]])  # Rz(−ψ̂) on the horizontal: φ_n = Rz(−ψ̂) ε
+        rz_plus = rz_minus.T
+        # η block
+        F[E, E] = rate * np.array([[0.0, 1.0], [-1.0, 0.0]])
+        F[E, T] = np.outer(g_vec, np.array([wn, -we]) @ rz_minus)
+        F[E, self.BG] = -np.outer(g_vec, c_bh[2])
+        G[E, 0:3] = -np.outer(g_vec, c_bh[2])
+        # ε block; (R_δ − I)ω_in horizontal is linear in η: columns d/dη1, d/dη2
+        j_eta = np.array([[-sn * we + c * wn, -c * we - sn * wn], [-c * we - sn * wn, sn * we - c * wn]])
+        F[T, T] = rate * np.array([[0.0, -1.0], [1.0, 0.0]]) + wu * np.array([[0.0, 1.0], [-1.0, 0.0]])
+        F[T, E] = -rz_plus @ j_eta
+        F[T, self.BG] = -c_bh[0:2]
+        G[T, 0:3] = -c_bh[0:2]
+
+    def attitude_feedback(self, x_att: np.ndarray) -> None:
+        """Paper eq 23: C_b^n = Ĉ_b^n − D·Ĉ_b^h, then orthonormalized."""
+        eta1, eta2, ex, ey = x_att
+        c_bn = self.ins.state.c_bn
+        psi, c_bh = _heading_split(c_bn)
+        c, s = math.cos(psi), math.sin(psi)
+        d = np.array([
+            [eta2, eta1, -(c * ey - s * ex)],
+            [-eta1, eta2, s * ey + c * ex],
+            [ey, -ex, 0.0],
+        ])
+        self.ins.set_attitude(orthonormalize(c_bn - d @ c_bh))
+
+    def heading_var(self) -> float:
+        """Var of sin δψ = ĉη1 − ŝη2 (≈ δψ once small)."""
+        psi, _ = _heading_split(self.ins.state.c_bn)
+        g = np.array([math.cos(psi), -math.sin(psi)])
+        a = self.A.start
+        return float(g @ self.P[a : a + 2, a : a + 2] @ g)
+
+
+# ---------------------------------------------------------------------------------------------
+# The run loop shared by both filters
+# ---------------------------------------------------------------------------------------------
+def coarse_level(dv_m_s: np.ndarray) -> tuple[float, float]:
+    """Pitch and roll [rad] from the mean specific force of a still period: f^b = C_n^b [0, 0, g]
+    gives f_x = −g cosθ sinγ, f_y = g sinθ, f_z = g cosθ cosγ."""
+    f = np.asarray(dv_m_s, float).mean(axis=0)
+    return math.atan2(f[1], math.hypot(f[0], f[2])), math.atan2(-f[0], f[2])
+
+
+def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_deg: float,
+                  config: GnssAlignConfig | None = None) -> GnssAlignResult:
+    """Level on the still start, then run the filter over every GNSS fix; return the histories."""
+    cfg = config or GnssAlignConfig()
+    dth, dv = imu.increments()
+    rate = float(imu.rate_hz)
+    n_imu = dth.shape[0]
+    t_fix = np.asarray(gnss.t_s, dtype=float)
+    order = np.argsort(t_fix)
+    # first fix after the levelling window that the IMU covers
+    k_level = int(round(cfg.level_s * rate))
+    if k_level < 1 or k_level > n_imu:
+        raise InputError(f"level_s={cfg.level_s} s needs IMU data; the IMU covers {n_imu / rate:.1f} s")
+    t_start_min = imu.t0_s + k_level / rate
+    order = order[t_fix[order] >= t_start_min - 1e-9]
+    if len(order) < 2:
+        raise InputError("GNSS: fewer than 2 fixes after the levelling window — check the receiver has a fix")
+    pitch, roll = coarse_level(dv[:k_level])
+    psi0 = math.radians(initial_heading_deg)
+    c0 = dcm_from_euler(psi0, pitch, roll)
+    origin = gnss.local_level()
+    j0 = order[0]
+    la0 = np.asarray(cfg.lever_arm_b_m, float)
+    k_cur = int(math.floor((t_fix[j0] - imu.t0_s) * rate + 1e-9))
+    state = NavState(gnss.pos_enu_m[j0] - c0 @ la0, gnss.vel_enu_m_s[j0].copy(), c0, imu.t0_s + k_cur / rate)
+    ins = Strapdown(state, rate, origin)
+    ins._prev_dtheta, ins._prev_dv = dth[k_cur - 1].copy(), dv[k_cur - 1].copy()
+    flt = filter_cls(ins, cfg, psi0)
+    flt.P[P_, P_] = np.diag(gnss.pos_std_m[j0] ** 2 + cfg.lever_arm_std_m**2)
+    rows = []
+    for j in order[1:]:
+        k_to = min(int(math.floor((t_fix[j] - imu.t0_s) * rate + 1e-9)), n_imu)
+        if k_to <= k_cur:
+            continue
+        summary = ins.propagate(dth[k_cur:k_to], dv[k_cur:k_to])
+        k_cur = k_to
+        flt.predict(summary)
+        z = flt.update(gnss.pos_enu_m[j], gnss.vel_enu_m_s[j], gnss.pos_std_m[j], gnss.vel_std_m_s[j],
+                       t_fix[j] - ins.state.t_s)
+        rows.append(_snapshot(flt, z))
+        if k_cur >= n_imu:
+            break
+    hist = GnssAlignHistory(*[np.array(col) for col in zip(*rows, strict=True)])
+    thr = cfg.converged_std_deg
+    above = np.nonzero(hist.heading_std_deg >= thr)[0]
+    if len(hist.t_s) == 0 or (len(above) and above[-1] == len(hist.t_s) - 1):
+        converged = None
+    else:
+        first = above[-1] + 1 if len(above) else 0
+        converged = float(hist.t_s[first] - state.t_s)
+    return GnssAlignResult(
+        method=flt.method,
+        heading_deg=float(hist.heading_deg[-1]),
+        heading_std_deg=float(hist.heading_std_deg[-1]),
+        pitch_deg=float(hist.pitch_deg[-1]),
+        roll_deg=float(hist.roll_deg[-1]),
+        lever_arm_m=hist.lever_arm_m[-1].copy(),
+        lever_arm_std_m=hist.lever_arm_std_m[-1].copy(),
+        gyro_bias_dph=hist.gyro_bias_dph[-1].copy(),
+        accel_bias_ug=hist.accel_bias_ug[-1].copy(),
+        pos_enu_m=hist.pos_enu_m[-1].copy(),
+        converged_after_s=converged,
+        start_s=state.t_s,
+        history=hist,
+    )
+
+
+def _snapshot(flt: _ErrorStateFilter, z: np.ndarray) -> tuple:
+    ins = flt.ins
+    st = ins.state
+    psi, pitch, roll = _euler(st.c_bn)
+    d = np.sqrt(np.diag(flt.P))
+    g_ug = 1e6 / STANDARD_GRAVITY_M_S2
+    return (
+        st.t_s,
+        math.degrees(psi),
+        math.degrees(math.sqrt(max(flt.heading_var(), 0.0))),
+        math.degrees(pitch),
+        math.degrees(roll),
+        st.pos_enu_m.copy(),
+        d[P_].copy(),
+        st.v_enu_m_s.copy(),
+        flt.lever_arm_b_m.copy(),
+        d[flt.LA].copy(),
+        ins.gyro_bias_rad_s / DPH,
+        d[flt.BG] / DPH,
+        ins.accel_bias_m_s2 * g_ug,
+        d[flt.BA] * g_ug,
+        z.copy(),
+    )
+
+
+def _euler(c: np.ndarray) -> tuple[float, float, float]:
+    """ψ in [0, 2π), θ, γ of C_b^n = Rz(−ψ)Rx(θ)Ry(γ)."""
+    return (math.atan2(c[0, 1], c[1, 1]) % (2 * math.pi), math.asin(max(-1.0, min(1.0, c[2, 1]))),
+            math.atan2(-c[2, 0], c[2, 2]))
+
+
+def align_gnss(imu: ImuSeries, gnss: GnssSeries, initial_heading_deg: float,
+               config: GnssAlignConfig | None = None) -> GnssAlignResult:
+    """GNSS-aided alignment from any initial heading with the paper's δsin/δcos filter (eq 1–23)."""
+    return run_alignment(SinCosFilter, imu, gnss, initial_heading_deg, config)
