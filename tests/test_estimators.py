@@ -326,3 +326,14 @@ def test_sample_count_weights_equal_std_weights():
     equal = solve_heading(ANGLES_8_MEASURED, noisy, f_b[0, :, 1], 40.0)
     assert by_count.heading_deg == pytest.approx(by_std.heading_deg, abs=1e-9)
     assert abs(by_count.heading_deg - equal.heading_deg) > 1e-6
+
+
+def test_as_dict_is_strict_json():
+    import json
+
+    c_pn, _, _ = attitude([30.0], [3.0], [100.0])
+    angles = np.array([0.0, 120.0, 240.0])
+    w_b, f_b = body_means(angles, c_pn, 40.0)
+    d = solve_heading(angles, w_b[0, :, 1], f_b[0, :, 1], 40.0).as_dict()
+    text = json.dumps(d, allow_nan=False)
+    assert json.loads(text)["heading_std_deg"] is None and json.loads(text)["accel_magnitude_g"] is None

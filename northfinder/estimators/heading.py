@@ -76,35 +76,47 @@ class HeadingSolution:
         return {k: float(v[0]) for k, v in self.accel_fit.residual_rms.items()}
 
     def as_dict(self) -> dict:
-        """JSON-ready summary (floats and lists only)."""
+        """JSON-ready summary (floats and lists; NaN, e.g. σ at n = 3, becomes None)."""
         g, a = self.gyro_fit, self.accel_fit
-        return {
-            "method": self.method,
-            "heading_deg": self.heading_deg,
-            "heading_std_deg": self.heading_std_deg,
-            "pitch_deg": self.pitch_deg,
-            "roll_deg": self.roll_deg,
-            "tilt_deg": self.tilt_deg,
-            "tilt_azimuth_deg": self.tilt_azimuth_deg,
-            "latitude_deg": self.latitude_deg,
-            "n_positions": self.n_positions,
-            "methods_heading_deg": dict(self.methods),
-            "accel_magnitude_g": self.accel_magnitude_g,
-            "gyro_fit": {
-                "names": list(g.names),
-                "coefficients_dph": g.coefficients[0].tolist(),
-                "covariance_dph2": g.covariance[0].tolist(),
-                "residual_rms_dph": self.gyro_residual_rms_dph,
-                "noise": g.noise,
-                "dof": g.dof,
-            },
-            "accel_fit": {
-                "names": list(a.names),
-                "coefficients_g": a.coefficients[0].tolist(),
-                "residual_rms_g": self.accel_residual_rms_g,
-                "noise": a.noise,
-            },
-        }
+        return _json_safe(
+            {
+                "method": self.method,
+                "heading_deg": self.heading_deg,
+                "heading_std_deg": self.heading_std_deg,
+                "pitch_deg": self.pitch_deg,
+                "roll_deg": self.roll_deg,
+                "tilt_deg": self.tilt_deg,
+                "tilt_azimuth_deg": self.tilt_azimuth_deg,
+                "latitude_deg": self.latitude_deg,
+                "n_positions": self.n_positions,
+                "methods_heading_deg": dict(self.methods),
+                "accel_magnitude_g": self.accel_magnitude_g,
+                "gyro_fit": {
+                    "names": list(g.names),
+                    "coefficients_dph": g.coefficients[0].tolist(),
+                    "covariance_dph2": g.covariance[0].tolist(),
+                    "residual_rms_dph": self.gyro_residual_rms_dph,
+                    "noise": g.noise,
+                    "dof": g.dof,
+                },
+                "accel_fit": {
+                    "names": list(a.names),
+                    "coefficients_g": a.coefficients[0].tolist(),
+                    "residual_rms_g": self.accel_residual_rms_g,
+                    "noise": a.noise,
+                },
+            }
+        )
+
+
+def _json_safe(obj):
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
 
 
 def _as_batch(x, n: int, name: str) -> tuple[np.ndarray, bool]:
