@@ -227,3 +227,23 @@ def test_configure_rejects_bad_values_and_silence():
     with Imu("expected://kvh", transport=proto, wait_for_data=False, timeout_s=0.2) as imu:
         with pytest.raises(DeviceError, match="no answer to \\?DR"):
             imu.query("DR")
+
+
+def test_unplugged_device_is_one_clear_error():
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    try:
+        frames, _ = _frames(10)
+        with Imu(path, wait_for_data=False) as imu:
+            _write_all(master, b"".join(frames))
+            assert len(imu.read(10, timeout_s=5)) == 10
+            os.close(master)  # the far end goes away: reads on the slave fail
+            master = None
+            with pytest.raises(DeviceError, match=f"I/O error on {path}.*unplugged"):
+                imu.read(1, timeout_s=5)
+    finally:
+        if master is not None:
+            os.close(master)
+        os.close(slave)
