@@ -158,6 +158,10 @@ def test_public_api_matches_the_batch_path_and_returns_floats():
             assert abs(wrap180(s.heading_deg - psi)) < 1e-6
             assert s.pitch_deg == pytest.approx(pitch[0], abs=1e-6)
             assert s.roll_deg == pytest.approx(roll[0], abs=1e-6)
+        sol2 = solve_heading(
+            ANGLES_8_MEASURED, w_b[0, :, :2], f_b[0, :, :2], lat, gyro_std_dph=np.ones((8, 2))
+        )
+        assert abs(wrap180(sol2.heading_deg - psi)) < 1e-6 and np.isnan(sol2.accel_magnitude_g)
         assert set(sol.methods) == {"exact", "coordinate_transform", "vector", "eq11", "uncompensated"}
         assert solve_all_methods(ANGLES_8_MEASURED, w_b[0], f_b[0], lat) == sol.methods
         assert sol.as_dict()["heading_deg"] == sol.heading_deg
@@ -233,7 +237,7 @@ def _good():
         (lambda a, w, f, k: (a, np.where(_ONE_CELL, np.nan, w), f, k), "gyro_dph.*NaN"),
         (lambda a, w, f, k: (a, w, np.where(_ONE_CELL, np.inf, f), k), "accel_g.*NaN or inf"),
         (lambda a, w, f, k: (a, w, f * STANDARD_GRAVITY_M_S2, k), "far from the local gravity"),
-        (lambda a, w, f, k: (a, w, f[:, 1] * 20.0, k), "accelerometer swings"),
+        (lambda a, w, f, k: (a, w, f[:, 1] * 20.0, k), "horizontal specific force"),
         (lambda a, w, f, k: (a, w * RAD_S_PER_DPH, f, k), "deg/h"),
         (lambda a, w, f, k: (a, w, f, {"latitude_deg": 89.5}), "latitude"),
         (lambda a, w, f, k: (a, w, f, {"latitude_deg": -89.5}), "latitude"),

@@ -119,30 +119,32 @@ def _json_safe(obj):
     return obj
 
 
-def _as_batch(x, n: int, name: str) -> tuple[np.ndarray, bool]:
-    """(T, n, k) array and whether the input was 3-axis; raises InputError on bad shape/values."""
+def _as_batch(x, n: int, name: str) -> tuple[np.ndarray, int]:
+    """(T, n, k) array and its axis count k: 1 (b-y), 2 (b-x, b-y) or 3 (x, y, z)."""
     arr = np.asarray(x, dtype=float)
-    if arr.ndim >= 1 and arr.shape[-1] == 3 and arr.ndim >= 2 and arr.shape[-2] == n:
-        three, arr = True, arr.reshape((-1, n, 3))
+    if arr.ndim >= 2 and arr.shape[-1] in (2, 3) and arr.shape[-2] == n:
+        k = arr.shape[-1]
+        arr = arr.reshape((-1, n, k))
     elif arr.ndim >= 1 and arr.shape[-1] == n:
-        three, arr = False, arr.reshape((-1, n, 1))
+        k, arr = 1, arr.reshape((-1, n, 1))
     else:
         raise InputError(
-            f"{name}: shape {np.shape(x)} does not match {n} table angles; expected ({n},) or ({n}, 3)"
+            f"{name}: shape {np.shape(x)} does not match {n} table angles; "
+            f"expected ({n},), ({n}, 2) or ({n}, 3)"
         )
     if not np.all(np.isfinite(arr)):
         raise InputError(f"{name}: contains NaN or inf; drop or re-measure those positions")
-    return arr, three
+    return arr, k
 
 
-def _std_for(std, n: int, three: bool, name: str) -> np.ndarray | None:
+def _std_for(std, n: int, k: int, name: str) -> np.ndarray | None:
     if std is None:
         return None
     sd = np.asarray(std, dtype=float)
-    want = (n, 3) if three else (n,)
+    want = (n, k) if k > 1 else (n,)
     if sd.shape != want:
         raise InputError(f"{name}: shape {sd.shape}, expected {want} (same as the means)")
-    return sd[:, :2] if three else sd[:, None]
+    return sd[:, :2] if k > 1 else sd[:, None]
 
 
 def _up_vector(fx, fy, g_local_g: float) -> np.ndarray:
@@ -208,8 +210,9 @@ def solve_batch(
         raise InputError("table_angle_deg: contains NaN or inf")
     n = alpha_deg.size
     alpha = np.deg2rad(alpha_deg)
-    gyro, gyro3 = _as_batch(gyro_dph, n, "gyro_dph")
-    accel, accel3 = _as_batch(accel_g, n, "accel_g")
+    gyro, gyro_k = _as_batch(gyro_dph, n, "gyro_dph")
+    accel, accel_k = _as_batch(accel_g, n, "accel_g")
+    gyro2, accel2, accel3 = gyro_k >= 2, accel_k >= 2, accel_k == 3
     if gyro.shape[0] != accel.shape[0]:
         raise InputError(f"gyro_dph has {gyro.shape[0]} trials but accel_g has {accel.shape[0]}")
     if sample_times_s is not None:
@@ -217,15 +220,15 @@ def solve_batch(
         if sample_times_s.shape != (n,) or not np.all(np.isfinite(sample_times_s)):
             raise InputError(f"sample_times_s: expected {n} finite mid-dwell times in seconds")
 
-    g_axes = ("x", "y") if gyro3 else ("y",)
+    g_axes = ("x", "y") if gyro2 else ("y",)
     gyro_fit = fit_harmonic(
-        alpha, gyro[..., :2] if gyro3 else gyro, g_axes,
-        std=_std_for(gyro_std_dph, n, gyro3, "gyro_std_dph"), sample_count=sample_count,
+        alpha, gyro[..., :2] if gyro2 else gyro, g_axes,
+        std=_std_for(gyro_std_dph, n, gyro_k, "gyro_std_dph"), sample_count=sample_count,
         time_s=sample_times_s, bias_model=bias_model, what="gyro fit",
     )  # fmt: skip
     accel_fit = fit_harmonic(
-        alpha, accel[..., :2] if accel3 else accel, ("x", "y") if accel3 else ("y",),
-        std=_std_for(accel_std_g, n, accel3, "accel_std_g"), sample_count=sample_count,
+        alpha, accel[..., :2] if accel2 else accel, ("x", "y") if accel2 else ("y",),
+        std=_std_for(accel_std_g, n, accel_k, "accel_std_g"), sample_count=sample_count,
         what="accelerometer fit",
     )  # fmt: skip
 
@@ -252,7 +255,7 @@ def solve_batch(
         if np.any(mag >= g_local_g):
             m = float(mag.max())
             raise InputError(
-                f"accel_g: the b-y accelerometer swings by {m:.4g} g, not below the local gravity "
+                f"accel_g: the horizontal specific force is {m:.4g} g, not below the local gravity "
                 f"{g_local_g:.5f} g; pass the means in g and keep the base still"
             )
     up = _up_vector(fx, fy, g_local_g)
@@ -315,8 +318,9 @@ def solve_heading(
 
     table_angle_deg (n,): measured (encoder) table angles α, any n ≥ 3 that separates cos/sin.
     gyro_dph: mean body rate per position [deg/h], (n,) for one gyro on b-y (the paper's case)
-    or (n, 3) for x, y, z (x and y fitted jointly; z unused). accel_g: mean specific force [g],
-    (n,) for one accelerometer on b-y or (n, 3). method: "exact" (default), "coordinate_transform"
+    or (n, 3) for x, y, z (x and y fitted jointly; z unused; (n, 2) for x, y also works).
+    accel_g: mean specific force [g], (n,) for one accelerometer on b-y, (n, 2) or (n, 3) (z only
+    checks |f| against the local gravity). method: "exact" (default), "coordinate_transform"
     (eq 3), "vector" (eq 10), "eq11", "uncompensated" (eq 8); every method's heading is in
     `.methods`.
     gyro_std_dph / accel_std_g: standard error of each position mean (same shape as the means);
