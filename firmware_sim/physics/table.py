@@ -5,7 +5,9 @@ knots of piecewise-constant acceleration. The table top is the motor plus a ligh
 compliance: x'' + 2ζω₀x' + ω₀²x = −k·α̈_motor, so each change of acceleration (start, cruise,
 stop) rings at ~10 Hz and dies out with the decay time τ = 1/(ζω₀). With k = 1 this is a plain
 mass on a spring (the top's acceleration stays continuous); k scales the ringing to the
-configured amplitude after a stop from full deceleration. The encoder sits on the motor side
+configured amplitude, the response to one step of the configured deceleration (the steps at
+the start and end of braking superpose, so the ringing after a stop is up to ~1.5× that;
+None or 0 turns it off). The encoder sits on the motor side
 (as on a worm-driven rotation stage), so it reads the planned angle, quantized, and equals the
 top's angle once the ringing has died out.
 
@@ -52,10 +54,9 @@ class TableMotion:
         self.decay_s = 1.0 / (self.zeta * self.omega0)
         self.omega_d = self.omega0 * math.sqrt(max(1.0 - self.zeta**2, 1e-12))
         # k so that a stop at the configured deceleration rings with the configured amplitude
-        if ringing_amplitude_deg is None:
-            self.ring_gain = 1.0
-        else:
-            self.ring_gain = ringing_amplitude_deg * DEG * self.omega0**2 / self.accel_rad_s2
+        # None or 0: no ringing (k = 1, a plain spring, would be amplitude = accel/ω₀² ≈ 0.02°)
+        amplitude_rad = (ringing_amplitude_deg or 0.0) * DEG
+        self.ring_gain = amplitude_rad * self.omega0**2 / self.accel_rad_s2
         # knots: from t_k on, α = p_k + v_k·τ + a_k·τ²/2 (motor side)
         self._t = np.array([-np.inf])
         self._p = np.array([self.power_on_rad])
