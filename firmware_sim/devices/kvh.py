@@ -240,8 +240,7 @@ class KvhImu(Device):
             if key == "CONFIG" and value in ("0", "1"):
                 self.config_mode = value == "1"
             elif key == "DR" and value.isdigit() and int(value) in RATES_HZ:
-                if int(value) != self.rate_hz:
-                    self._set_rate(int(value), t)
+                self._set_rate(int(value), t)  # even to the same rate: the sample clock restarts
             elif key == "ROTFMT" and value in ("DELTA", "RATE"):
                 self.rot_format = value
             elif key == "ROTUNITS" and value in ("RAD", "DEG"):
@@ -252,12 +251,13 @@ class KvhImu(Device):
             log.info("imu: unknown line %r ignored", line)
 
     def _set_rate(self, rate_hz: int, t: float) -> None:
-        # a new grid from the last emitted sample time, so no interval is skipped or doubled
+        """`=DR`: a new sample grid from the last sample's end (no interval skipped or doubled);
+        the next 2 messages carry no valid data while the unit's filters settle."""
         self.epoch_s = self.epoch_s + self.emitted / self.rate_hz
         self.emitted = 0
-        self.rate_hz = rate_hz
-        if self.make_models is not None:
+        if rate_hz != self.rate_hz and self.make_models is not None:
             self.gyro_model, self.accel_model = self.make_models(rate_hz)
+        self.rate_hz = rate_hz
         self.invalid_left = INVALID_AFTER_RATE_CHANGE
 
     # -- data ---------------------------------------------------------------------------------
