@@ -18,6 +18,9 @@ from firmware_sim.faults import FaultError, Faults, parse_faults
 IMU_VARIANTS = ("gyro-1axis", "gyro-3axis", "gyro-accel")
 IMU_RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
 CAN_INTERFACES = ("slcan", "virtual", "socketcan")
+GRADES = ("nav", "kvh1760", "tactical-mems", "consumer")
+"""The sensor presets of docs/ARCHITECTURE.md (firmware_sim/physics/sensors.py), named here so that a
+wrong name is refused before the physics (and scipy) is imported."""
 
 
 class ConfigError(ValueError):
@@ -117,6 +120,8 @@ def check(cfg: SimConfig) -> None:
         elif t.startswith("str"):
             if value is not None and not isinstance(value, str):
                 raise ConfigError(f"{f.name} = {value!r}: give a string")
+    if cfg.grade not in GRADES:
+        raise ConfigError(f"grade = {cfg.grade!r}: use one of {', '.join(GRADES)}")
     if not -90.0 <= cfg.latitude_deg <= 90.0:
         raise ConfigError(f"latitude_deg = {cfg.latitude_deg}: give a latitude in [-90, 90] degrees")
     if not -90.0 < cfg.pitch_deg < 90.0:

@@ -111,3 +111,21 @@ def test_example_toml_and_flags_merge():
     assert cfg.faults.stage_stall == 2
     with pytest.raises(ConfigError, match="imu_variant"):
         SimConfig(imu_variant="x")
+
+
+def test_grade_names_checked_early_are_the_physics_presets():
+    from firmware_sim.config import GRADES
+    from firmware_sim.physics.sensors import ACCEL_PRESETS, GYRO_PRESETS
+
+    assert set(GRADES) == set(GYRO_PRESETS) == set(ACCEL_PRESETS)
+
+
+def test_sway_table_builds_a_swaying_world():
+    from firmware_sim.physics.world import SwayingPlatform
+    from firmware_sim.simulator import build_world
+
+    world = build_world(SimConfig(sway={"roll": [[2.0, 8.0], [0.5, 3.1, 40.0]],
+                                        "heave": [{"amplitude": 0.3, "period_s": 7.0}]}))
+    assert isinstance(world.platform, SwayingPlatform) and len(world.platform.roll) == 2
+    with pytest.raises(ConfigError, match="sway.wobble"):
+        build_world(SimConfig(sway={"wobble": [[1.0, 2.0]]}))
