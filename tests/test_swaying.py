@@ -50,19 +50,23 @@ def _run(seed: int, sway: Sway, grade_name: str, duration_s: float = T_S, lat: f
 
 
 def _monte_carlo(sway: Sway, grade_name: str, n_runs: int, seed0: int):
-    sw_err, sw_std, co_err, co_std, diff = [], [], [], [], []
+    sw_err, sw_std, co_err, co_std, diff, gls_err = [], [], [], [], [], []
     for i in range(n_runs):
         _, gyro, accel, truth, grade = _run(seed0 + i, sway, grade_name)
         sol = align_swaying(gyro, accel, RATE_HZ, LAT, gyro_bias_dph=grade.gyro_bias_dph,
                             accel_bias_ug=grade.accel_bias_ug)
         co = coarse_align(gyro, accel, RATE_HZ, LAT)
+        gls = align_swaying(gyro, accel, RATE_HZ, LAT, method="cone-gls", gyro_bias_dph=grade.gyro_bias_dph,
+                            accel_bias_ug=grade.accel_bias_ug)
+        gls_err.append(wrap_deg_180(gls.heading_deg - truth))
         sw_err.append(wrap_deg_180(sol.heading_deg - truth))
         sw_std.append(sol.heading_std_deg)
         co_err.append(wrap_deg_180(co.heading_deg - truth))
         co_std.append(co.heading_std_deg)
         diff.append(wrap_deg_180(sol.heading_deg - co.heading_deg))
     return {k: np.asarray(v, dtype=float) for k, v in
-            dict(sw_err=sw_err, sw_std=sw_std, co_err=co_err, co_std=co_std, diff=diff).items()}
+            dict(sw_err=sw_err, sw_std=sw_std, co_err=co_err, co_std=co_std, diff=diff,
+                 gls_err=gls_err).items()}
 
 
 @pytest.fixture(scope="module")
@@ -108,6 +112,18 @@ def test_reported_sigma_matches_monte_carlo_scatter(reference_mc):
     grade = GRADES["nav"]
     expected = np.hypot(_noise_limit_deg(grade, T_S), _bias_floor_deg(grade))
     assert 0.5 * expected <= reference_mc["sw_std"].mean() <= 2.0 * expected
+
+
+def test_gls_fine_step_is_no_worse_and_gains_little(reference_mc):
+    """The noise-weighted GLS step (batch form of a Kalman fine alignment on the same windows) is the
+    best linear unbiased estimate for the modelled noise; its predicted white-noise σ is only ~5 % below the
+    unweighted fit at 300 s (docs/swaying.md §6), which 50 runs cannot resolve. So: on the same
+    data it must stay within 15 % of the cone fit, and the two must agree run by run."""
+    s_cone = reference_mc["sw_err"].std(ddof=1)
+    s_gls = reference_mc["gls_err"].std(ddof=1)
+    print(f"\ncone σψ = {s_cone:.4f}°, cone-gls σψ = {s_gls:.4f}° (same {N_RUNS} runs)")
+    assert s_gls <= 1.15 * s_cone
+    assert np.std(reference_mc["gls_err"] - reference_mc["sw_err"]) < 0.5 * s_cone
 
 
 def test_static_coarse_alignment_fails_under_sway(reference_mc):

@@ -12,8 +12,9 @@ the improvements documented in docs/swaying.md:
    lever-arm accelerations; in i_b0 the smoothed specific force is gravity turning on a cone
    about the Earth's axis (paper abstract, step 2);
 3. fit that cone: ``method="cone"`` (default) solves Wahba's problem between the smoothed
-   vectors and the known cone (half-angle 90° − L, rate Ωe) — three unknowns;
-   ``method="circle"`` is the paper's free space-circle fit (plane normal by SVD = Earth axis);
+   vectors and the known cone (half-angle 90° − L, rate Ωe) — three unknowns; ``"cone-gls"``
+   adds one generalized-least-squares step weighted by the measured noise (the optional fine
+   alignment); ``method="circle"`` is the paper's free space-circle fit (plane normal by SVD);
 4. project the Earth axis on the horizontal plane at the end of the window: true north; the
    attitude at t_end is C_{i_b0}^{n}(t_end)·C_b^{i_b0}(t_end) (paper abstract, step 3).
 
@@ -54,6 +55,9 @@ KVH_GYRO_RANGE_DPS = 490.0
 """Gyro input range assumed by default: ±490 °/s (KVH 1750/1760/1775)."""
 KVH_ACCEL_RANGE_G = 10.0
 """Accelerometer range assumed by default: ±10 g (KVH 1750)."""
+METHODS = ("cone", "cone-gls", "circle")
+"""cone: constrained fit (default); cone-gls: plus one generalized-least-squares step weighted by the
+measured noise (what a Kalman filter on the same windows would reach); circle: the paper's free fit."""
 _BH4 = (0.35875, 0.48829, 0.14128, 0.01168)  # Blackman–Harris 4-term coefficients
 _BH4_MAIN_LOBE_BINS = 4.0  # half-width of its main lobe in 1/L_w; side lobes below −92 dB
 
@@ -296,7 +300,9 @@ def align_swaying(
     Inputs are what the IMU driver delivers (`ImuBlock`): `gyro` [n,3] as rates [rad/s]
     (`gyro_rad_s`) or, with ``gyro_is_delta``, delta angles [rad] per sample; `accel_g` [n,3]
     specific force in g (1 g = 9.80665 m/s²) averaged over each sample interval; `rate_hz` the
-    sample rate. `max_sway_period_s` sets the smoothing window (4 periods) that rejects sway;
+    sample rate. `method`: "cone" (constrained fit, default), "cone-gls" (plus a noise-weighted
+    GLS step, the batch form of a Kalman fine alignment), "circle" (the paper's free circle fit).
+    `max_sway_period_s` sets the smoothing window (4 periods) that rejects sway;
     `gyro_bias_dph` / `accel_bias_ug` are 1σ priors of the turn-on biases (they cannot be
     separated from north and are only added to the reported 1σ; 0 = white noise only).
     Raises InputError for input that cannot give a meaningful heading.
@@ -308,8 +314,8 @@ def align_swaying(
                          f"and {accel_g.shape}")
     if not rate_hz or rate_hz <= 0:
         raise InputError(f"swaying alignment needs the IMU sample rate; got rate_hz={rate_hz}")
-    if method not in ("cone", "circle"):
-        raise InputError(f"unknown swaying method '{method}': use 'cone' or 'circle'")
+    if method not in METHODS:
+        raise InputError(f"unknown swaying method '{method}': use one of {', '.join(METHODS)}")
     if not np.isfinite(latitude_deg) or abs(latitude_deg) > 85.0:
         raise InputError(f"latitude {latitude_deg}° is outside ±85°: near the pole the Earth axis is "
                          "vertical and has no usable horizontal projection")
@@ -362,26 +368,39 @@ def align_swaying(
     t_end = duration_s
     c_b_ib0_end = quat_to_dcm(q[-1])
 
+    # Noise measured from the data (docs/swaying.md §5): it weights the GLS step and gives the 1σ.
+    n_gyro = white_noise_density(dtheta, dt)  # rad/√s per body axis
+    n_acc = white_noise_density(dv, dt)  # m/s/√s per body axis
+    cov_phi, cov_acc = _noise_covariances(idx, h, t_win, t_end, dt, q, n_gyro, n_acc,
+                                          gyro_bias_dph * DPH, accel_bias_ug * 1e-6 * STANDARD_GRAVITY_M_S2)
+    m = f_win.shape[0]
+    if method == "cone-gls":
+        s_f = _block_skew(f_win)
+        sigma_f = s_f @ cov_phi[: 3 * m, : 3 * m] @ s_f.T + cov_acc
+        # Sway that leaks through the smoothing is not noise: treat the cone fit's residual power
+        # as white so that the weighting cannot amplify it (docs/swaying.md §6).
+        c0, _ = _fit_cone(f_win, m_win, t_end, lat)
+        res0 = f_win - m_win @ _earth_rotation_n0_to_nt(t_end, lat).T @ c0
+        sigma_f += np.eye(3 * m) * np.mean(res0**2)
+        chol = np.linalg.cholesky(sigma_f)
+
     def solve(f, dphi_end=None):
-        if method == "cone":
-            c_ib0_nt, axis = _fit_cone(f, m_win, t_end, lat)
-        else:
+        if method == "circle":
             c_ib0_nt, axis = _fit_circle(f, t_win, t_end, lat)
+        else:
+            c_ib0_nt, axis = _fit_cone(f, m_win, t_end, lat)
+            if method == "cone-gls":
+                c_ib0_nt, axis = _gls_step(f, m_win, c_ib0_nt, t_end, lat, chol)
         tweak = np.eye(3) if dphi_end is None else np.eye(3) - skew(dphi_end)
         c_b_n = c_ib0_nt @ tweak @ c_b_ib0_end
         return c_b_n, axis
 
     c_b_n, axis = solve(f_win)
     angles = _angles(c_b_n)
-
-    # Noise measured from the data, then propagated through the fit (docs/swaying.md §5).
-    n_gyro = white_noise_density(dtheta, dt)  # rad/√s per body axis
-    n_acc = white_noise_density(dv, dt)  # m/s/√s per body axis
-    std = _propagate(solve, angles, f_win, idx, h, t_win, t_end, dt, q, n_gyro, n_acc,
-                     gyro_bias_dph * DPH, accel_bias_ug * 1e-6 * STANDARD_GRAVITY_M_S2)
+    std = _propagate(solve, f_win, cov_phi, cov_acc)
 
     residual = f_win - (c_b_ib0_end @ c_b_n.T @ _earth_rotation_n0_to_nt(t_end, lat) @ m_win.T).T \
-        if method == "cone" else None
+        if method != "circle" else None
     diag = {
         "n_samples": n,
         "lost_samples_filled": n_lost,
@@ -454,25 +473,34 @@ def _fill_gaps(sample_index: np.ndarray, rate: np.ndarray, accel_g: np.ndarray, 
     return out_r, out_a, int(full.size - sample_index.size)
 
 
-def _propagate(solve, angles, f_win, idx, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias, accel_bias):
-    """1σ of heading, pitch, roll by first-order propagation (docs/swaying.md §5).
-
-    Noise sources, all in i_b0: the attitude random walk φ(t) driven by the gyro white noise
-    (Cov φ(s),φ(t) = Q·min(s,t)) and a constant gyro bias prior (φ = b·t); the accelerometer
-    white noise and bias prior. A window sees e_j = [F_j×]Φ_j + A_j with Φ_j = ∫h_j φ; the end
-    attitude sees φ(t_end). Cov(Φ_i, Φ_j) = Q·∫H_i H_j dτ with H_j(τ) = ∫_τ^T h_j (tail
-    integral), because min(s,t) = ∫ 1[τ<s]·1[τ<t] dτ. The Jacobian of the angles with respect
-    to F_j and φ(t_end) is taken by central differences of the fit itself.
-    """
+def _block_skew(f_win: np.ndarray) -> np.ndarray:
+    """blockdiag([F_j×]) [3m, 3m]: maps window attitude errors Φ_j to specific-force errors."""
     m = f_win.shape[0]
+    s = np.zeros((3 * m, 3 * m))
+    for j in range(m):
+        s[3 * j: 3 * j + 3, 3 * j: 3 * j + 3] = skew(f_win[j])
+    return s
+
+
+def _noise_covariances(idx, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias, accel_bias):
+    """Covariances of the noise the windows see (docs/swaying.md §5), all in i_b0 axes.
+
+    The attitude random walk φ(t) driven by the gyro white noise has Cov(φ(s), φ(t)) = Q·min(s,t);
+    a constant gyro bias prior adds φ = b·t. A window sees Φ_j = ∫h_j φ, so
+    Cov(Φ_i, Φ_j) = Q·∫H_i H_j dτ with H_j(τ) = ∫_τ^T h_j (tail integral), because
+    min(s,t) = ∫ 1[τ<s]·1[τ<t] dτ; the end attitude sees φ(t_end) (H = 1 up to t_end).
+    The accelerometer white noise gives Cov(A_i, A_j) = Q_a·∫h_i h_j dt, its bias prior a
+    constant. Returns (cov_phi [3(m+1)]², cov_acc [3m]²); the last block of cov_phi is φ(t_end).
+    """
+    m = idx.shape[0]
     n = q.shape[0] - 1
     # Rotate per-axis body noise into i_b0 (the body sways, so average over the record).
     c = quat_to_dcm(q[1:: max(1, n // 200)])
     qg = np.einsum("kij,j,klj->il", c, n_gyro**2, c) / c.shape[0]
-    qa = np.einsum("kij,j,klj->il", c, n_acc**2, c) / c.shape[0]  # (m/s²)²·s
+    qa = np.einsum("kij,j,klj->il", c, n_acc**2, c) / c.shape[0]
     qb = np.eye(3) * gyro_bias**2
     qab = np.eye(3) * accel_bias**2
-    # Kernels on a coarse grid of D samples (≥ 20 per window) for the Brownian covariance.
+    # Kernels on a coarse grid of D samples (≥ 40 cells per window) for the Brownian covariance.
     d = max(1, idx.shape[1] // 40)
     n_c = n // d
     hc = np.zeros((m + 1, n_c + 1))
@@ -489,8 +517,39 @@ def _propagate(solve, angles, f_win, idx, h, t_win, t_end, dt, q, n_gyro, n_acc,
     k_acc = hc[:m] @ hc[:m].T / step
     cov_phi = np.kron(k_phi, qg) + np.kron(np.outer(t_all, t_all), qb)
     cov_acc = np.kron(k_acc, qa) + np.kron(np.ones((m, m)), qab)
+    return cov_phi, cov_acc
 
-    # Jacobians by central differences (3m + 3 evaluations of a closed-form fit).
+
+def _gls_step(f_win, m_n0, c_ib0_nt, t_end_s, lat, chol):
+    """One Gauss–Newton step of the generalized least squares min Σ rᵀΣ⁻¹r about the Wahba solution.
+
+    Linearized model (docs/swaying.md eq. 9): F_j − Ĉ M_j = −Ĉ[M_j×]δ + e_j, Cov(e) = Σ; the
+    batch form of a Kalman filter/smoother that carries the same three misalignment states.
+    """
+    r_nt = _earth_rotation_n0_to_nt(t_end_s, lat)
+    c_n0_ib0 = c_ib0_nt.T @ r_nt
+    a = np.concatenate([-c_n0_ib0 @ skew(mj) for mj in m_n0])
+    r = (f_win - m_n0 @ c_n0_ib0.T).ravel()
+    aw = np.linalg.solve(chol, a)
+    rw = np.linalg.solve(chol, r)
+    delta = np.linalg.lstsq(aw, rw, rcond=None)[0]
+    ang = np.linalg.norm(delta)
+    kx = skew(delta)
+    rot = np.eye(3) + (np.sin(ang) / ang if ang > 0 else 1.0) * kx + \
+        ((1 - np.cos(ang)) / ang**2 if ang > 0 else 0.5) * (kx @ kx)
+    c_n0_ib0 = c_n0_ib0 @ rot
+    axis = c_n0_ib0 @ np.array([0.0, np.cos(lat), np.sin(lat)])
+    return r_nt @ c_n0_ib0.T, axis
+
+
+def _propagate(solve, f_win, cov_phi, cov_acc):
+    """1σ of heading, pitch, roll [deg] by first-order propagation (docs/swaying.md §5).
+
+    A window sees e_j = [F_j×]Φ_j + A_j; the end attitude sees φ(t_end). The Jacobian of the
+    angles with respect to F_j and φ(t_end) is taken by central differences of the fit itself
+    (3m + 3 evaluations of a closed-form solution), so the same code serves every method.
+    """
+    m = f_win.shape[0]
     scale_f = 1e-6 * np.linalg.norm(f_win[0])
     scale_p = 1e-6
     jac_f = np.zeros((3, 3 * m))
@@ -505,10 +564,7 @@ def _propagate(solve, angles, f_win, idx, h, t_win, t_end, dt, q, n_gyro, n_acc,
         dp = np.zeros(3)
         dp[a] = scale_p
         jac_p[:, a] = _angle_diff(_angles(solve(f_win, dp)[0]), _angles(solve(f_win, -dp)[0])) / (2 * scale_p)
-    s = np.zeros((3 * m, 3 * m))
-    for j in range(m):
-        s[3 * j: 3 * j + 3, 3 * j: 3 * j + 3] = skew(f_win[j])
-    g_map = np.hstack([jac_f @ s, jac_p])
+    g_map = np.hstack([jac_f @ _block_skew(f_win), jac_p])
     cov = g_map @ cov_phi @ g_map.T + jac_f @ cov_acc @ jac_f.T
     return np.sqrt(np.maximum(np.diag(cov), 0.0))
 
