@@ -413,8 +413,10 @@ def test_presets_and_custom_values():
     }
     custom = gyro_errors("nav", arw_deg_rt_h=(0.001, 0.002, 0.003))
     assert custom.arw_deg_rt_h == (0.001, 0.002, 0.003) and custom.bias_instability_dph == (0.005,) * 3
-    with pytest.raises(KeyError, match="gyro grade 'navy' unknown"):
+    with pytest.raises(ValueError, match="gyro grade 'navy' unknown; use one of nav, kvh1760"):
         gyro_errors("navy")
+    with pytest.raises(ValueError, match="site latitude_deg = 91"):
+        Site(91.0)
 
 
 def test_site_gravity_and_southern_hemisphere():

@@ -235,6 +235,8 @@ class _ErrorModel:
     def __init__(
         self, sample_rate_hz: float, rng, sf_ppm, mis_urad, bias, white_sigma, gm_sigma, tau_s, rw_sigma
     ):
+        if not float(sample_rate_hz) > 0.0:
+            raise ValueError(f"sensor sample_rate_hz = {sample_rate_hz}: must be > 0")
         self.dt_s = 1.0 / float(sample_rate_hz)
         ss = _seed_sequence(rng)
         self.rng = {
@@ -333,12 +335,12 @@ class AccelModel(_ErrorModel):
 def gyro_errors(grade: str, **overrides) -> GyroErrors:
     """A preset by name, optionally with some values changed; a clear error for an unknown name."""
     if grade not in GYRO_PRESETS:
-        raise KeyError(f"gyro grade {grade!r} unknown; use one of {', '.join(GYRO_PRESETS)}")
+        raise ValueError(f"gyro grade {grade!r} unknown; use one of {', '.join(GYRO_PRESETS)}")
     return GYRO_PRESETS[grade].with_(**overrides) if overrides else GYRO_PRESETS[grade]
 
 
 def accel_errors(grade: str, **overrides) -> AccelErrors:
     """An accelerometer preset by name (same names as the gyros)."""
     if grade not in ACCEL_PRESETS:
-        raise KeyError(f"accelerometer grade {grade!r} unknown; use one of {', '.join(ACCEL_PRESETS)}")
+        raise ValueError(f"accelerometer grade {grade!r} unknown; use one of {', '.join(ACCEL_PRESETS)}")
     return ACCEL_PRESETS[grade].with_(**overrides) if overrides else ACCEL_PRESETS[grade]

@@ -37,6 +37,12 @@ class Site:
     latitude_deg: float = 40.0
     height_m: float = 0.0
 
+    def __post_init__(self) -> None:
+        if not -90.0 <= float(self.latitude_deg) <= 90.0:
+            raise ValueError(f"site latitude_deg = {self.latitude_deg}: geodetic, in [-90, 90]")
+        if not -12_000.0 <= float(self.height_m) <= 100_000.0:
+            raise ValueError(f"site height_m = {self.height_m}: give an ellipsoidal height in metres")
+
     @property
     def gravity_m_s2(self) -> float:
         """WGS-84 normal gravity here."""
@@ -239,11 +245,13 @@ class World:
     # -- platform in p axes -------------------------------------------------------------------
     def _static_p(self) -> dict:
         """ω_ip^p and f^p (reference point) for a static platform; cached."""
-        if self._static_cache is None:
+        key = (id(self.platform), self.platform, self.site)
+        if self._static_cache is None or self._static_cache["key"] != key:
             c = np.asarray(self.platform.kinematics(np.zeros(1), self.site).c_pn[0])
             w_ie = earth.earth_rate_n_rad_s(self.site.latitude_deg * DEG)
             g_n = np.array([0.0, 0.0, -self.site.gravity_m_s2])
-            self._static_cache = {"w": c.T @ w_ie, "f": c.T @ (-g_n)}
+            self._static_cache = {"key": key, "w": c.T @ w_ie, "f": c.T @ (-g_n)}
+            self._still_key = None
         return self._static_cache
 
     def attitude(self, t_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -337,6 +345,7 @@ class World:
             and self.table.still_between(t0, t1)
         ):
             alpha = float(self.table.kinematics(np.array([t0]))[0][0])
+            self._static_p()  # refreshes the caches if the platform or site was swapped
             key = (alpha, dt, tuple(r.tolist()))
             if self._still_key != key:
                 w, f = self.truth(np.array([t0]), r)
