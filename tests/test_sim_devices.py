@@ -530,3 +530,88 @@ def test_default_bench_can_accelerometer_over_slcan():
     bound_ug = abs(a.bias_ug[2]) + 3 * a.bias_instability_ug[2] + abs(a.scale_factor_ppm[2]) \
         + 3 * a.noise_ug_rt_hz[2] * math.sqrt(100.0) / math.sqrt(len(z_ug)) + 1.0  # +1: µg rounding
     assert abs(np.mean(z_ug) - expected_ug) < bound_ug
+
+
+def test_gyro_z_sum_across_a_90_deg_move_is_the_encoder_step_plus_earth_rate():
+    """The gyro sees the table turn at the device time the stage reports: Σ dθz over a window
+    holding a whole move = Δα (encoder) + Ωz·T, within the encoder steps and the gyro noise."""
+    import threading
+
+    lat, scale = 40.0, 50.0
+    cfg = SimConfig(seed=8, time_scale=scale, latitude_deg=lat, heading_deg=10.0, pitch_deg=0.5,
+                    roll_deg=0.3, grade="nav", accel_enabled=False)
+    sim = Simulator(cfg)
+    ep = sim.start()
+    settle_wall_s = 10.0 * sim.world.table.decay_s / scale  # ringing down by e^-10
+    raw = bytearray()
+    stop = threading.Event()
+    try:
+        stage = Stage(ep["turntable"])
+        stage.send("1OR")
+        stage.wait_state((smc100.READY_FROM_HOMING,))
+        time.sleep(settle_wall_s)
+        imu = serial.Serial(ep["imu"], 921600, timeout=0.05)
+
+        def reader():
+            while not stop.is_set():
+                raw.extend(imu.read(65536))
+
+        thread = threading.Thread(target=reader)
+        thread.start()
+        time.sleep(0.05)
+        start_deg = stage.position_deg()
+        stage.send("1PA90")
+        stage.wait_state((smc100.READY_FROM_MOVING,))
+        end_deg = stage.position_deg()
+        time.sleep(settle_wall_s)
+        stop.set()
+        thread.join()
+        imu.close()
+        stage.close()
+    finally:
+        stop.set()
+        sim.stop()
+    msgs = _messages(bytes(raw))
+    assert msgs["crc_ok"].all() and (np.diff(msgs["sequence"].astype(int)) % 128 == 1).all()
+    n, dt = len(msgs), 1e-3
+    total_deg = math.degrees(msgs["gyro"][:, 2].astype(float).sum())
+    c_pn = _rz(-math.radians(cfg.heading_deg)) @ _rx(math.radians(cfg.pitch_deg)) \
+        @ _ry(math.radians(cfg.roll_deg))
+    earth_z_deg = math.degrees((c_pn.T @ earth_rate_enu_rad_s(lat))[2] * n * dt)  # b-z = p-z
+    g = GYRO_PRESETS["nav"]
+    step_deg = math.degrees(sim.world.table.encoder_step_rad)
+    noise_deg = 3.0 * g.arw_deg_rt_h[2] / 60.0 * math.sqrt(n * dt)
+    bias_deg = (abs(g.bias_dph[2]) + 3.0 * g.bias_instability_dph[2]) / 3600.0 * n * dt
+    scale_deg = abs(g.scale_factor_ppm[2]) * 1e-6 * 90.0
+    assert abs(end_deg - start_deg - 90.0) <= 2 * step_deg
+    bound_deg = 2 * step_deg + noise_deg + bias_deg + scale_deg
+    residual_deg = total_deg - (end_deg - start_deg) - earth_z_deg
+    print(f"\nΣ gyro z {total_deg:.6f}°, encoder {end_deg - start_deg:.4f}°, Earth z {earth_z_deg:.6f}°, "
+          f"residual {residual_deg:.2e}° (bound {bound_deg:.2e}°)")
+    assert abs(residual_deg) < bound_deg
+
+
+def test_virtual_can_interface_for_in_process_clients():
+    import can
+
+    client = can.Bus(interface="virtual", channel="test_sim_devices_vcan", receive_own_messages=False)
+    sim = Simulator(SimConfig(seed=4, time_scale=10.0, can_interface="virtual",
+                              can_channel="test_sim_devices_vcan", accel_rate_hz=50.0))
+    try:
+        ep = sim.start()
+        assert ep["can"] == {"interface": "virtual", "channel": "test_sim_devices_vcan", "bitrate": 500000,
+                             "node_id": 16}
+        boot = client.recv(timeout=5.0)
+        assert boot is not None and (boot.arbitration_id, bytes(boot.data)) == (0x710, b"\x00")
+        client.send(can.Message(arbitration_id=0x000, data=[0x01, 0x00], is_extended_id=False))
+        ids = []
+        deadline = time.monotonic() + 10.0
+        while len(ids) < 20 and time.monotonic() < deadline:
+            msg = client.recv(timeout=1.0)
+            if msg is not None and msg.arbitration_id in (0x190, 0x290):
+                ids.append(msg.arbitration_id)
+        assert len(ids) == 20 and ids[0] == 0x190  # TPDO1 then TPDO2, pair after pair
+        assert ids == [0x190, 0x290] * 10
+    finally:
+        sim.stop()
+        client.shutdown()
