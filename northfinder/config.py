@@ -78,6 +78,8 @@ class RunConfig:
     """Start the dwell anyway (and say so in the events log) after this long [device s]."""
     settle_ratio: float = 0.8
     """Settled once a window's gyro-z spread is no longer below this fraction of the previous one."""
+    settle_rest_dph: float = 360.0
+    """…and its gyro-z mean is below this [deg/h] (the table is not turning; a slew is ~10⁵ deg/h)."""
     return_to_start: bool = True
 
 
@@ -252,6 +254,12 @@ def _validate(cfg: BenchConfig) -> None:
         f"use at least settle_min_s = {r.settle_min_s}",
     )
     need(0.0 < r.settle_ratio < 1.0, "[run] settle_ratio", r.settle_ratio, "use a fraction between 0 and 1")
+    need(
+        math.isfinite(r.settle_rest_dph) and r.settle_rest_dph > 0,
+        "[run] settle_rest_dph",
+        r.settle_rest_dph,
+        "use a rate greater than 0 deg/h",
+    )
     need(e.method in METHODS, "[estimator] method", e.method, f"use one of {', '.join(METHODS)}")
 
 

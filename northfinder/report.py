@@ -10,23 +10,25 @@ import numpy as np
 
 
 def harmonic_curve(
-    alpha_deg: np.ndarray, values: np.ndarray, grid_deg: np.ndarray
+    alpha_deg: np.ndarray, values: np.ndarray, grid_deg: np.ndarray, harmonic: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fit y = R + a·cos α + b·sin α by least squares (turntable paper eq 6–7, X̂ = (AᵀA)⁻¹AᵀY).
 
-    Returns the curve on `grid_deg` and the residuals at the measured angles. For the plot only;
-    the heading comes from northfinder.estimators.
+    Returns the curve on `grid_deg` and the residuals at the measured angles. With
+    `harmonic=False` only R is fitted: a z axis turns about itself and sees a constant.
+    For the plot only; the heading comes from northfinder.estimators.
     """
     a = np.deg2rad(np.asarray(alpha_deg, dtype=float))
     y = np.asarray(values, dtype=float)
-    design = np.column_stack([np.ones_like(a), np.cos(a), np.sin(a)])
+    g = np.deg2rad(np.asarray(grid_deg, dtype=float))
+    k = 3 if harmonic else 1
+    design = np.column_stack([np.ones_like(a), np.cos(a), np.sin(a)])[:, :k]
+    grid_design = np.column_stack([np.ones_like(g), np.cos(g), np.sin(g)])[:, :k]
     ok = np.isfinite(y)
-    if ok.sum() < 3:
-        return np.full(np.shape(grid_deg), np.nan), np.full(y.shape, np.nan)
+    if ok.sum() < k:
+        return np.full(g.shape, np.nan), np.full(y.shape, np.nan)
     coef, *_ = np.linalg.lstsq(design[ok], y[ok], rcond=None)
-    g = np.deg2rad(grid_deg)
-    curve = coef[0] + coef[1] * np.cos(g) + coef[2] * np.sin(g)
-    return curve, y - design @ coef
+    return grid_design @ coef, y - design @ coef
 
 
 def write_report(result: dict[str, Any], path: str | Path) -> Path:
@@ -43,17 +45,28 @@ def write_report(result: dict[str, Any], path: str | Path) -> Path:
     accel = accel.reshape(len(positions), -1)
     grid = np.linspace(min(alpha.min(), 0.0), max(alpha.max(), 360.0), 361)
 
-    fig = plt.figure(figsize=(13, 11), constrained_layout=True)
-    gs = fig.add_gridspec(5, 3, height_ratios=[3, 1.3, 3, 1.3, 3])
+    fig = plt.figure(figsize=(13, 11))
+    gs = fig.add_gridspec(
+        5,
+        3,
+        height_ratios=[3, 1.3, 3, 1.3, 3],
+        left=0.07,
+        right=0.98,
+        bottom=0.04,
+        top=0.94,
+        hspace=0.55,
+        wspace=0.25,
+    )
     rows = [("gyro", gyro, "deg/h", 1.0, 0), ("accel", accel * 1e3, "mg", 1e3, 2)]
     for label, data, unit, _scale, row in rows:
         for k, axis in enumerate("xyz"):
             if k >= data.shape[1]:
                 continue
-            curve, resid = harmonic_curve(alpha, data[:, k], grid)
+            curve, resid = harmonic_curve(alpha, data[:, k], grid, harmonic=axis != "z")
             ax = fig.add_subplot(gs[row, k])
             ax.plot(alpha, data[:, k], "o", color="C0", label="position mean")
-            ax.plot(grid, curve, "-", color="C1", label="R + a·cos α + b·sin α")
+            ax.plot(grid, curve, "-", color="C1", label="R + a·cos α + b·sin α" if axis != "z" else "R")
+            ax.ticklabel_format(axis="y", useOffset=False)
             ax.set_title(f"{label} {axis} [{unit}]")
             ax.set_xlabel("table angle α [deg]")
             ax.grid(alpha=0.3)
@@ -64,6 +77,7 @@ def write_report(result: dict[str, Any], path: str | Path) -> Path:
             rax.plot(alpha, resid, "s", color="C3", ms=4)
             rax.set_ylabel(f"residual [{unit}]", fontsize=8)
             rax.grid(alpha=0.3)
+            rax.ticklabel_format(axis="y", useOffset=False)
 
     tilt = result.get("tilt", {})
     pax = fig.add_subplot(gs[4, 0], projection="polar")

@@ -25,7 +25,7 @@ import numpy as np
 
 from northfinder.config import RunConfig, position_plan_deg
 from northfinder.constants import DPH
-from northfinder.errors import ConfigError
+from northfinder.errors import ConfigError, DeviceError
 from northfinder.rundir import PositionMeans, RunDir, position_means
 
 log = logging.getLogger(__name__)
@@ -39,6 +39,10 @@ class _Turntable(Protocol):  # the parts of northfinder.drivers.turntable.Turnta
     def position_deg(self) -> float: ...
     def stop(self) -> Any: ...
     def soft_limits_deg(self) -> tuple[float, float]: ...
+
+
+MIN_VISIBLE_MOVE_DEG = 0.5
+"""Moves at least this long are expected to show in the gyro z before settling is judged."""
 
 
 class Interrupted(Exception):
@@ -106,22 +110,55 @@ class StopFlag:
                 signal.signal(s, h)
 
 
-def settle_reached(z_windows: list[np.ndarray], ratio: float) -> bool:
-    """The table's ringing has died out in the gyro-z signal.
+def settle_reached(z_windows_dph: list[np.ndarray], ratio: float, rest_dph: float) -> bool:
+    """The table's ringing has died out in the gyro-z signal [deg/h].
 
     Ringing after a stop is a decaying oscillation about the z axis: the spread of gyro z over
     successive equal windows shrinks by a constant factor per window while it rings, and stops
     shrinking once only sensor noise is left. Settled when the last window's spread is no longer
-    below `ratio` × the previous one's and the two window means agree within 4σ of their noise.
+    below `ratio` × the previous one's, the two window means agree within 4σ of their noise, and
+    the mean is below `rest_dph` (a window still inside a constant-rate slew — samples that
+    arrive late — is steady too, but turning at ~10⁵ deg/h).
     """
-    if len(z_windows) < 2:
+    if len(z_windows_dph) < 2:
         return False
-    a, b = z_windows[-2], z_windows[-1]
+    a, b = z_windows_dph[-2], z_windows_dph[-1]
+    if abs(float(np.mean(b))) > rest_dph:
+        return False
     sa, sb = float(np.std(a)), float(np.std(b))
     if sb < ratio * sa:
         return False
     noise = np.sqrt(sa**2 / a.size + sb**2 / b.size)
     return abs(float(np.mean(b)) - float(np.mean(a))) <= 4.0 * noise + 1e-12
+
+
+@dataclass
+class ClockSync:
+    """One IMU sample index and one accelerometer counter taken at the same device instant.
+
+    The two streams arrive over different links and may lag the stage by different amounts
+    (at a high time scale a fraction of a wall second is seconds of device time), so the
+    accelerometer's dwell is cut by device time, not by arrival: counter
+    c = c_ref + (i − i_ref)·rate_accel/rate_imu for IMU sample index i.
+    """
+
+    imu_index: int
+    accel_counter: int
+    imu_rate_hz: float
+    accel_rate_hz: float
+
+    def accel_counter_at(self, imu_index: int) -> int:
+        return self.accel_counter + int(
+            np.ceil((imu_index - self.imu_index) * self.accel_rate_hz / self.imu_rate_hz)
+        )
+
+
+@dataclass
+class _AccelSpan:
+    """Accelerometer samples of one dwell, cut by counter."""
+
+    counter: np.ndarray
+    accel_g: np.ndarray
 
 
 class Sequencer:
@@ -157,6 +194,7 @@ class Sequencer:
         self.move_timeout_s = move_timeout_s
         self.positions: list[PositionMeans] = []
         self._plan: list[float] = []
+        self.clock = ClockSync(0, 0, 1.0, 1.0)
 
     # -- helpers -----------------------------------------------------------------------------
     def _event(self, event: dict[str, Any]) -> None:
@@ -167,8 +205,7 @@ class Sequencer:
         if self.stop_flag:
             state = None
             try:
-                self.turntable.stop()
-                st = self.turntable.status()
+                st = self.turntable.stop()
                 state = st.state_name
             except Exception as exc:  # noqa: BLE001 - report, then still save and exit
                 log.warning("could not stop the stage cleanly: %s", exc)
@@ -208,43 +245,100 @@ class Sequencer:
         while True:
             self._check_stop()
             st = self.turntable.status()
-            if st.is_ready:
+            if st.is_ready and not st.errors:
                 return
-            if st.is_disabled or st.errors or time.monotonic() > deadline:
-                # Let the driver raise its StageError naming the state and letter.
-                self.turntable.wait_ready(timeout_s=0.0)
+            if st.is_disabled or st.errors or not st.is_referenced:
+                self.turntable.wait_ready(timeout_s=0.0)  # raises StageError naming the state and letter
                 return
+            if time.monotonic() > deadline:
+                raise DeviceError(
+                    "turntable",
+                    getattr(self.turntable, "port", None),
+                    f"not READY {self.move_timeout_s:g} s after the move to {target_deg:g}° "
+                    f"(state {st.state_name}) — check the stage's speed and load",
+                )
             time.sleep(self.poll_s)
 
     def _read_imu(self, n: int) -> Any:
         return self.imu.read(n, timeout_s=max(5.0, 2.0 * n / self.imu.rate_hz + 5.0))
 
-    def settle(self) -> SettleResult:
-        """Read gyro-z windows (device time) until the ringing has died out or settle_max_s."""
+    def settle(self, expect_motion: bool = True) -> SettleResult:
+        """Read gyro-z windows (device time) from the move command on: first until the slew shows
+        (|mean| above settle_rest_dph; samples that arrive late still show the table at rest
+        before the move), then until the ringing has died out, at most settle_max_s after that."""
         cfg = self.run_cfg
         rate = float(self.imu.rate_hz)
         n_win = max(2, int(round(cfg.settle_window_s * rate)))
         max_windows = max(1, int(np.ceil(cfg.settle_max_s * rate / n_win)))
         min_windows = int(np.ceil(cfg.settle_min_s * rate / n_win))
-        self.imu.discard_pending()
+        if expect_motion:
+            for _ in range(int(np.ceil(self.move_timeout_s * rate / n_win))):
+                self._check_stop()
+                z = np.asarray(self._read_imu(n_win).gyro_rad_s)[:, 2] / DPH
+                if abs(float(np.mean(z))) > cfg.settle_rest_dph:
+                    break
+            else:
+                raise DeviceError(
+                    "imu",
+                    getattr(self.imu, "port", None),
+                    "the gyro z axis showed no table motion during the move — is the IMU on the table, "
+                    "its z along the table axis?",
+                )
         windows: list[np.ndarray] = []
         for k in range(1, max_windows + 1):
             self._check_stop()
-            block = self._read_imu(n_win)
-            windows.append(np.asarray(block.gyro_rad_s)[:, 2])
-            if k >= min_windows and settle_reached(windows[-2:], cfg.settle_ratio):
+            windows.append(np.asarray(self._read_imu(n_win).gyro_rad_s)[:, 2] / DPH)
+            if k >= min_windows and settle_reached(windows[-2:], cfg.settle_ratio, cfg.settle_rest_dph):
                 return SettleResult(k * n_win / rate, True, k)
         return SettleResult(max_windows * n_win / rate, False, max_windows)
 
+    def sync_clocks(self) -> ClockSync:
+        """Start the accelerometer node (NMT) and pair the next IMU sample with its first sample.
+
+        The node sends nothing before NMT start (or whatever it sent is dropped here), so its first
+        sample after the start and the IMU's next sample belong to the same instant within a
+        sample or two; done before any load, when neither link lags.
+        """
+        self.imu.discard_pending()
+        self.accel.discard_pending()
+        self.accel.start_node()
+        imu_index = int(np.asarray(self._read_imu(1).sample_index)[0])
+        counter = int(np.asarray(self._read_accel(1).counter)[0])
+        self.clock = ClockSync(imu_index, counter, float(self.imu.rate_hz), self.accel_rate_hz)
+        self._event({"event": "clock_sync", "imu_index": imu_index, "accel_counter": counter})
+        return self.clock
+
+    def _read_accel(self, n: int) -> Any:
+        return self.accel.read(n, timeout_s=max(5.0, 2.0 * n / self.accel_rate_hz + 5.0))
+
+    def _accel_span(self, c0: int, c1: int) -> Any:
+        """The accelerometer samples with counters c0…c1 (device time), reading past late arrivals."""
+        kept = []
+        last = None
+        while last is None or last < c1:
+            self._check_stop()
+            want = max(1, c1 - last) if last is not None else max(1, c1 - c0 + 1)
+            block = self._read_accel(min(want, max(1, int(self.accel_rate_hz))))
+            counter = np.asarray(block.counter)
+            last = int(counter[-1])
+            sel = (counter >= c0) & (counter <= c1)
+            if sel.any():
+                kept.append((counter[sel], np.asarray(block.accel_g)[sel]))
+        if not kept:
+            raise DeviceError(
+                "accelerometer",
+                getattr(self.accel, "port", None),
+                f"no samples in counters {c0}…{c1}; the node's counter jumped — check the bus",
+            )
+        return _AccelSpan(np.concatenate([k[0] for k in kept]), np.concatenate([k[1] for k in kept], axis=0))
+
     def dwell(self, index: int, target_deg: float) -> tuple[list[Any], Any]:
-        """Collect dwell_s·rate IMU samples (in chunks, reporting live statistics), then the
-        accelerometer's dwell_s·rate samples from the same interval."""
+        """Collect dwell_s·rate IMU samples right after settling (in chunks, reporting live
+        statistics), then the accelerometer samples of the same device-time span."""
         cfg = self.run_cfg
         rate = float(self.imu.rate_hz)
         n_total = max(2, int(round(cfg.dwell_s * rate)))
         n_chunk = max(1, int(round(self.chunk_s * rate)))
-        self.imu.discard_pending()
-        self.accel.discard_pending()
         blocks = []
         got = 0
         s1 = np.zeros(3)
@@ -271,24 +365,27 @@ class Sequencer:
                     gyro_std_of_mean_dph=np.sqrt(var / got).tolist(),
                 )
             )
-        n_accel = max(2, int(round(cfg.dwell_s * float(self.accel_rate_hz))))
-        self._check_stop()
-        accel_block = self.accel.read(n_accel, timeout_s=max(5.0, 2.0 * n_accel / self.accel_rate_hz + 5.0))
-        return blocks, accel_block
+        i0 = int(np.asarray(blocks[0].sample_index)[0])
+        c0 = self.clock.accel_counter_at(i0)
+        n_accel = max(2, int(round(cfg.dwell_s * self.accel_rate_hz)))
+        return blocks, self._accel_span(c0, c0 + n_accel - 1)
 
     # -- the sequence ------------------------------------------------------------------------
     def run(self) -> list[PositionMeans]:
         """Measure every position of the plan and return the per-position means."""
         self.on_progress(Progress(0, self.run_cfg.positions, "reference"))
+        self.sync_clocks()
         self.turntable.ensure_referenced(allow_home=self.allow_home)
         self._check_stop()
         self._plan = self.plan_deg()
         n = len(self._plan)
         for i, target in enumerate(self._plan):
             self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
+            here = float(self.turntable.position_deg())
+            self.imu.discard_pending()  # what is left is from before the move command
             self._move(target)
             self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
-            settle = self.settle()
+            settle = self.settle(expect_motion=abs(target - here) >= MIN_VISIBLE_MOVE_DEG)
             blocks, accel_block = self.dwell(i, target)
             self._check_stop()
             angle_deg = float(self.turntable.position_deg())

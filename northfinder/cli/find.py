@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import signal
 import sys
 import time
 from collections.abc import Iterator
@@ -97,12 +98,19 @@ def _apply_overrides(cfg: bench.BenchConfig, args: argparse.Namespace) -> bench.
 
 
 @contextlib.contextmanager
-def open_bench(cfg: bench.BenchConfig, rundir: RunDir | None) -> Iterator[tuple[Any, Any, Any]]:
-    """Open the turntable, the IMU and the accelerometer with their logs in the run directory."""
+def open_bench(
+    cfg: bench.BenchConfig, rundir: RunDir | None, can_kwargs: dict[str, Any] | None = None
+) -> Iterator[tuple[Any, Any, Any]]:
+    """Open the turntable, the IMU and the accelerometer with their logs in the run directory.
+
+    `can_kwargs` are extra python-can bus arguments (e.g. `sleep_after_open` for an slcan
+    adapter that is a pty and needs no 2 s reset wait); with them the bus is opened here.
+    """
     from northfinder.drivers.accelerometer import Accelerometer
     from northfinder.drivers.imu import Imu
     from northfinder.drivers.turntable import Turntable
 
+    a = cfg.accelerometer
     with contextlib.ExitStack() as stack:
         tt = stack.enter_context(
             _guard(
@@ -121,24 +129,47 @@ def open_bench(cfg: bench.BenchConfig, rundir: RunDir | None) -> Iterator[tuple[
                 "imu",
                 cfg.imu.port,
                 lambda: Imu(
-                    cfg.imu.port, baudrate=cfg.imu.baudrate, raw_log=rundir.imu_raw_path if rundir else None
+                    cfg.imu.port,
+                    baudrate=cfg.imu.baudrate,
+                    timeout_s=5.0,
+                    raw_log=rundir.imu_raw_path if rundir else None,
                 ),
             )
         )
+        bus = None
+        if can_kwargs:
+            bus = _open_can_bus(cfg, can_kwargs)
+            stack.callback(bus.shutdown)
         acc = stack.enter_context(
             _guard(
                 "accelerometer",
-                cfg.accelerometer.channel,
+                a.channel,
                 lambda: Accelerometer(
-                    cfg.accelerometer.interface,
-                    cfg.accelerometer.channel,
-                    bitrate=cfg.accelerometer.bitrate,
-                    node_id=cfg.accelerometer.node_id,
+                    a.interface,
+                    a.channel,
+                    bitrate=a.bitrate,
+                    node_id=a.node_id,
+                    rate_hz=a.rate_hz,
                     log_path=rundir.can_log_path if rundir else None,
+                    bus=bus,
                 ),
             )
         )
         yield tt, imu, acc
+
+
+def _open_can_bus(cfg: bench.BenchConfig, can_kwargs: dict[str, Any]) -> Any:
+    import can
+
+    a = cfg.accelerometer
+    try:
+        return can.Bus(interface=a.interface, channel=a.channel, bitrate=a.bitrate, **can_kwargs)
+    except Exception as exc:  # noqa: BLE001 - python-can raises many types; all are the setup's
+        raise DeviceError(
+            "accelerometer",
+            f"{a.interface}:{a.channel}",
+            f"cannot open the CAN bus ({exc}); check the channel",
+        ) from None
 
 
 @contextlib.contextmanager
@@ -220,9 +251,13 @@ class _ProgressView:
 def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
     """The rich summary table: heading ± σ, tilt, every method, positions, truth and error."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
-    console = console or Console()
+    if console is None:
+        console = Console()
+        if not console.is_terminal:  # piped or captured: do not squeeze the tables into 80 columns
+            console = Console(width=max(console.width, 132))
     t = result["tilt"]
     head = Table(title="northfinder result", show_header=False, box=None)
     head.add_row(
@@ -254,26 +289,19 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
             f"{result['positions_measured']} of {result['positions_planned']} positions measured",
         )
     console.print(head)
-    methods = Table(title="every method")
+    from northfinder.constants import wrap_deg_180
+
+    methods = Table(title="every method (* = the result)")
     methods.add_column("method")
-    methods.add_column("heading [deg]", justify="right")
-    methods.add_column("σ [deg]", justify="right")
+    methods.add_column(escape("heading [deg]"), justify="right")
     if "truth" in result:
-        methods.add_column("error [deg]", justify="right")
+        methods.add_column(escape("error [deg]"), justify="right")
     for name, m in result["methods"].items():
         h = m.get("heading_deg")
-        s = m.get("heading_std_deg")
-        row = [
-            name + (" *" if name == result["method"] else ""),
-            "—" if h is None else f"{h:.4f}",
-            "—" if s is None else f"{s:.4f}",
-        ]
+        row = [name + (" *" if name == result["method"] else ""), "—" if h is None else f"{h:.4f}"]
         if "truth" in result:
-            from northfinder.constants import wrap_deg_180
-
-            row.append(
-                "—" if h is None else f"{float(wrap_deg_180(h - result['truth']['heading_deg'])):+.4f}"
-            )
+            err = "—" if h is None else f"{float(wrap_deg_180(h - result['truth']['heading_deg'])):+.4f}"
+            row.append(err)
         methods.add_row(*row)
     console.print(methods)
     pos = Table(title="positions")
@@ -283,22 +311,22 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
         "gyro x [°/h]",
         "gyro y [°/h]",
         "gyro z [°/h]",
-        "accel x [g]",
-        "accel y [g]",
-        "accel z [g]",
+        "accel x [mg]",
+        "accel y [mg]",
+        "accel z [mg]",
         "samples",
         "lost",
         "accel n",
         "accel lost",
     ):
-        pos.add_column(col, justify="right")
+        pos.add_column(escape(col), justify="right")
     for i, p in enumerate(result["positions"], 1):
         g, a = p["gyro_dph"], p["accel_g"]
         pos.add_row(
             str(i),
             f"{p['table_angle_deg']:.3f}",
             *(f"{v:+.4f}" for v in g),
-            *("—" if v is None else f"{v:+.6f}" for v in a),
+            *("—" if v is None else f"{v * 1e3:+.3f}" for v in a),
             str(p["samples"]),
             str(p["lost_samples"]),
             str(p["accel_samples"]),
@@ -331,39 +359,56 @@ def run(args: argparse.Namespace) -> int:
         cfg = _apply_overrides(bench.load(args.config), args)
         bench.require_ports(cfg)
     rundir = RunDir(args.out or default_out())
+    t_wall = time.monotonic()
     with contextlib.ExitStack() as stack:
         if settings is not None:
             endpoints = stack.enter_context(SimulatorProcess(settings))
             cfg = bench_config(endpoints, settings.latitude_deg, cfg)
-        return _measure(cfg, rundir, args, settings)
+        result = measure(
+            cfg,
+            rundir,
+            settings=settings,
+            json_path=args.json,
+            report=not args.no_report,
+            # firmware-sim's slcan adapter is a pty: no USB adapter reset to wait 2 s for.
+            can_kwargs={"sleep_after_open": 0.05}
+            if settings and cfg.accelerometer.interface == "slcan"
+            else None,
+        )
+    print_summary(result, run_dir=rundir.path)
+    print(f"wall time {time.monotonic() - t_wall:.1f} s (measurement and report)", file=sys.stderr)
+    return 0
 
 
-def _measure(
-    cfg: bench.BenchConfig, rundir: RunDir, args: argparse.Namespace, settings: SimSettings | None
-) -> int:
-    t_wall = time.monotonic()
+def measure(
+    cfg: bench.BenchConfig,
+    rundir: RunDir,
+    *,
+    settings: SimSettings | None = None,
+    json_path: str | None = None,
+    report: bool = True,
+    progress: bool = True,
+    can_kwargs: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """One north find on the bench `cfg` describes: open the devices, run the sequence, save the
+    run directory, return the result. A signal stops it: RunAborted (exit 130, 143 for SIGTERM)
+    after the stage is stopped and what was measured is saved."""
     truth = settings.truth() if settings else None
-    rundir.write_json(
-        CONFIG,
-        {
-            "bench": cfg.to_dict(),
-            "simulate": None
-            if settings is None
-            else {
-                **settings.truth(),
-                "grade": settings.grade,
-                "seed": settings.seed,
-                "time_scale": settings.time_scale,
-                "faults": list(settings.faults),
-            },
-            "argv": sys.argv,
-        },
-    )
+    sim_info = None
+    if settings is not None:
+        sim_info = {
+            **settings.truth(),
+            "grade": settings.grade,
+            "seed": settings.seed,
+            "time_scale": settings.time_scale,
+            "faults": list(settings.faults),
+        }
+    rundir.write_json(CONFIG, {"bench": cfg.to_dict(), "simulate": sim_info, "argv": sys.argv})
     stop = StopFlag()
-    with stop.installed(), open_bench(cfg, rundir) as (tt, imu, acc):
-        if cfg.imu.rate_hz != imu.rate_hz:
+    with stop.installed(), open_bench(cfg, rundir, can_kwargs) as (tt, imu, acc):
+        imu.configure()  # read the IMU's rate and gyro format back: the decoder must know them
+        if float(cfg.imu.rate_hz) != imu.rate_hz:
             imu.configure(rate_hz=cfg.imu.rate_hz)
-        acc.start_node()
         acc.wait_heartbeat()
         rundir.log_event(
             {
@@ -389,7 +434,7 @@ def _measure(
                 "truth": truth,
             }
         )
-        view = _ProgressView(cfg.run.positions, cfg.run.dwell_s, enabled=True)
+        view = _ProgressView(cfg.run.positions, cfg.run.dwell_s, enabled=progress)
         seq = Sequencer(
             tt,
             imu,
@@ -405,7 +450,7 @@ def _measure(
             with view:
                 positions = seq.run()
         except Interrupted as intr:
-            return _aborted(intr, cfg, rundir, truth, args)
+            _aborted(intr, cfg, rundir, truth, json_path, report)
     result = compute_result(
         positions,
         cfg.site.latitude_deg,
@@ -414,17 +459,15 @@ def _measure(
         truth=truth,
         positions_planned=cfg.run.positions,
     )
-    _save(result, rundir, args)
-    print_summary(result, run_dir=rundir.path)
-    print(f"wall time {time.monotonic() - t_wall:.1f} s", file=sys.stderr)
-    return 0
+    _save(result, rundir, json_path, report)
+    return result
 
 
-def _save(result: dict[str, Any], rundir: RunDir, args: argparse.Namespace) -> None:
+def _save(result: dict[str, Any], rundir: RunDir, json_path: str | None, report: bool) -> None:
     rundir.write_json(RESULT, result)
-    if args.json:
-        RunDir(Path(args.json).parent or ".").write_json(Path(args.json).name, result)
-    if not args.no_report and result is not None:
+    if json_path:
+        RunDir(Path(json_path).parent).write_json(Path(json_path).name, result)
+    if report:
         from northfinder.report import write_report
 
         write_report(result, rundir.report_path)
@@ -435,8 +478,9 @@ def _aborted(
     cfg: bench.BenchConfig,
     rundir: RunDir,
     truth: dict[str, float] | None,
-    args: argparse.Namespace,
-) -> int:
+    json_path: str | None,
+    report: bool,
+) -> None:
     k, n = len(intr.positions), cfg.run.positions
     rundir.log_event({"event": "end", "complete": False, "positions_measured": k})
     if k >= 3:
@@ -449,11 +493,11 @@ def _aborted(
             complete=False,
             positions_planned=n,
         )
-        _save(result, rundir, args)
+        _save(result, rundir, json_path, report)
     err = RunAborted(
         f"run stopped ({intr}); stage {intr.stage_state}; {k} of {n} positions saved in "
         f"{rundir.path} (northfinder replay {rundir.path})"
     )
-    if intr.signum == 15:
+    if intr.signum == signal.SIGTERM:
         err.exit_code = 143
     raise err
