@@ -6,6 +6,9 @@ bytes sent down an unplugged cable, and a client that opens the port later gets 
 Output never blocks the loop: what the kernel does not take at once (about 12 kB on Linux)
 waits in a bounded backlog; what does not fit there is dropped and counted, as a host-side
 UART overrun loses bytes while the device keeps transmitting.
+
+This is the one place that logs the raw traffic of every pty (logger `firmware_sim.pty`,
+DEBUG; `firmware-sim -vv`), at most 200 bytes per read or write.
 """
 
 from __future__ import annotations
@@ -96,6 +99,8 @@ class PtyPort:
         """Queue bytes for the client and push what the kernel takes now; overflow is dropped."""
         if self.closed or not data:
             return
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("%s -> %r", self.name, bytes(data[:200]))
         if not self.connected:
             self.bytes_unheard += len(data) + len(self._pending)
             self._pending.clear()
