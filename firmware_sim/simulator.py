@@ -26,6 +26,8 @@ log = logging.getLogger("firmware_sim.simulator")
 
 TICK_WALL_S = 0.005
 """Longest wall time between two ticks; input wakes the loop earlier."""
+CLIENT_STALL_WALL_S = 1.0
+"""A connected IMU client may stop reading for this long (wall) before bytes are dropped."""
 
 # independent random streams, one per purpose, from the one seed (SeedSequence.spawn order)
 _STREAM_GYRO, _STREAM_IMU_ACCEL, _STREAM_CAN_ACCEL, _STREAM_IMU_FAULTS, _STREAM_CAN_FAULTS = range(5)
@@ -163,6 +165,7 @@ class Simulator:
             rot_units=cfg.imu_rot_units, lever_arm_b_m=cfg.imu_lever_arm_m,
             temperature_c=cfg.imu_temperature_c, make_models=make_imu_models, faults=cfg.faults,
             fault_seed=streams[_STREAM_IMU_FAULTS],
+            backlog_bytes=max(64 * 1024, int(36 * 1000 * cfg.time_scale * CLIENT_STALL_WALL_S)),
         )
         self.devices.append(self.imu)
         if cfg.accel_enabled:

@@ -140,8 +140,8 @@ class KvhImu(Device):
     def __init__(self, world: Any, gyro_model: Any = None, accel_model: Any = None, *,
                  rate_hz: int = 1000, variant: str = DEFAULT_VARIANT, rot_format: str = "DELTA",
                  rot_units: str = "RAD", lever_arm_b_m: Any = (0.0, 0.0, 0.0), temperature_c: float = 25.0,
-                 make_models: Any = None, faults: Any = None, fault_seed: int = 0,
-                 port: PtyPort | None = None) -> None:
+                 make_models: Any = None, faults: Any = None, fault_seed: Any = 0,
+                 backlog_bytes: int | None = None) -> None:
         if variant not in VARIANTS:
             raise ValueError(f"IMU variant {variant!r} unknown; use one of {', '.join(VARIANTS)}")
         if int(rate_hz) not in RATES_HZ:
@@ -165,7 +165,8 @@ class KvhImu(Device):
         self.silence = getattr(faults, "imu_silence", None)
         self.disconnect = getattr(faults, "imu_disconnect", None)
 
-        self.port = port if port is not None else PtyPort("imu")
+        self._backlog_bytes = backlog_bytes
+        self.port = self._open_port()
         self._link_dir: str | None = None
         self._link_path: str | None = None
         if self.disconnect is not None:  # the endpoint must outlive the pty: a symlink to it
@@ -181,6 +182,11 @@ class KvhImu(Device):
         self.invalid_left = 0
         self.messages_sent = 0
         self._rx = bytearray()
+
+    def _open_port(self) -> PtyPort:
+        if self._backlog_bytes is None:
+            return PtyPort("imu")
+        return PtyPort("imu", backlog_bytes=self._backlog_bytes)
 
     # -- Device surface ---------------------------------------------------------------------
     def fileno(self) -> int | None:
@@ -329,7 +335,7 @@ class KvhImu(Device):
             self._down_until_s = at_s + down_s
         elif self._down_until_s is not None and t >= self._down_until_s:
             self._down_until_s = None
-            self.port = PtyPort("imu")
+            self.port = self._open_port()
             tmp = self._link_path + ".new"  # type: ignore[operator]
             os.symlink(self.port.path, tmp)
             os.replace(tmp, self._link_path)  # type: ignore[arg-type]
