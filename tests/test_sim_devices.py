@@ -298,8 +298,8 @@ def test_kvh_configuration_mode(bench):
         port.write(b"=CONFIG,1\n")
         _read_quiet(port)  # what was already on its way
         port.write(b"?DR\n")
-        port.timeout = 2.0
-        assert port.readline() == b"DR,1000\n"
+        port.timeout = 5.0
+        assert port.read_until(b"DR,1000\n").endswith(b"DR,1000\n")
         assert _read_quiet(port, 0.3) == b""  # 3 s of device time: configuration mode sends no data
         for line in (b"=DR,100\n", b"=ROTFMT,RATE\n", b"=ROTUNITS,DEG\n", b"=DR,333\n", b"=ROTFMT,FOO\n"):
             port.write(line)
