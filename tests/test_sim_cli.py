@@ -129,3 +129,11 @@ def test_sway_table_builds_a_swaying_world():
     assert isinstance(world.platform, SwayingPlatform) and len(world.platform.roll) == 2
     with pytest.raises(ConfigError, match="sway.wobble"):
         build_world(SimConfig(sway={"wobble": [[1.0, 2.0]]}))
+
+
+def test_disturbance_fault_reaches_the_world():
+    from firmware_sim.simulator import build_world
+
+    world = build_world(SimConfig(faults=["disturbance=20:0.5:0.1"]))
+    assert [(d.start_s, d.duration_s, d.amplitude_deg) for d in world.disturbances] == [(20.0, 0.5, 0.1)]
+    assert build_world(SimConfig()).disturbances == []
