@@ -615,3 +615,23 @@ def test_virtual_can_interface_for_in_process_clients():
     finally:
         sim.stop()
         client.shutdown()
+
+
+def test_a_client_that_stops_reading_never_blocks_the_bench():
+    """The IMU overruns (bytes dropped and counted) while the turntable still answers at once."""
+    sim = Simulator(SimConfig(seed=6, time_scale=10.0, accel_enabled=False))
+    ep = sim.start()
+    try:
+        imu = serial.Serial(ep["imu"], 921600, timeout=1.0)  # connected, but does not read
+        stage = Stage(ep["turntable"])
+        backlog_device_s = sim.imu.port.backlog_bytes / (36 * 1000.0)
+        deadline = time.monotonic() + 1.5 * backlog_device_s / 10.0 + 5.0
+        while sim.imu.port.bytes_dropped == 0 and time.monotonic() < deadline:
+            assert stage.ask("1TS") == "1TS00000A"
+            time.sleep(0.05)
+        assert sim.imu.port.bytes_dropped > 0
+        assert stage.ask("1TS") == "1TS00000A"
+        stage.close()
+        imu.close()
+    finally:
+        sim.stop()
