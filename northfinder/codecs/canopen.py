@@ -108,7 +108,10 @@ class CanCodec:
         return self._name_by_id.get(can_id)
 
     def decode(self, can_id: int, data: bytes) -> tuple[str, dict] | None:
-        """Raw (unscaled, integer) signal values of one of this node's frames, else None."""
+        """Raw (unscaled, integer) signal values of one of this node's frames, else None.
+
+        ValueError if the frame is one of this node's but shorter than its DBC message.
+        """
         name = self.frame_name(can_id)
         if name is None:
             return None
@@ -133,6 +136,7 @@ class AccelStats:
     emcy: int = 0
     heartbeats: int = 0
     frames: int = 0
+    malformed: int = 0  # this node's IDs with too few data bytes: dropped (their sample is lost)
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -172,15 +176,24 @@ class AccelFrameDecoder:
 
     def feed(self, can_id: int, data: bytes, timestamp: float | None = None,
              is_extended: bool = False, is_remote: bool = False) -> str | None:
-        """Take one frame; returns the frame's name if it was one of this node's, else None."""
+        """Take one frame; returns the frame's name if it was one of this node's, else None.
+
+        Never raises on bus input: a frame of this node shorter than its DBC message (a wrong
+        DLC) is counted in ``stats.malformed`` and dropped like a lost frame (None is returned),
+        so one bad frame cannot stop the driver's notifier thread.
+        """
         if is_extended or is_remote:
             return None
-        decoded = self.codec.decode(can_id, data)
+        if self.codec.frame_name(can_id) == "NMT":  # commands from a host: nothing to decode
+            return "NMT"
+        try:
+            decoded = self.codec.decode(can_id, data)
+        except ValueError:
+            self.stats.malformed += 1
+            return None
         if decoded is None:
             return None
         name, sig = decoded
-        if name == "NMT":  # commands from the host: nothing to decode into samples
-            return name
         self.stats.frames += 1
         if name == "TPDO1":
             if self._pending_xy is not None:

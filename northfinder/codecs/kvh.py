@@ -160,6 +160,16 @@ def parse_config_reply(line: bytes) -> tuple[str, str]:
     return m.group(1).decode(), m.group(2).decode()
 
 
+def find_config_reply(data: bytes, key: str) -> tuple[str, int] | None:
+    """The first ``KEY,VALUE\\n`` reply to the query `key` in a byte buffer → (value, end offset).
+
+    Matches the asked key exactly: a reply that follows binary data directly may be preceded by
+    bytes that look like upper-case letters, which a generic key pattern would swallow.
+    """
+    m = re.search(re.escape(key.encode("ascii")) + rb",([0-9A-Za-z.+-]+)\r?\n", data)
+    return None if m is None else (m.group(1).decode(), m.end())
+
+
 def find_config_replies(data: bytes) -> list[tuple[str, str, int]]:
     """Every ``KEY,VALUE\\n`` reply in a byte buffer → (key, value, end offset)."""
     return [(m.group(1).decode(), m.group(2).decode(), m.end()) for m in _REPLY_RE.finditer(data)]
@@ -228,6 +238,13 @@ class KvhDecoder:
         self._skipped_pending = False
         self._last_sequence: int | None = None
         self._last_index = -1
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes held for the next chunk (a frame begun, or the last 3 bytes that may start a
+        header); always < 36. ``stats.bytes == 36·stats.frames + stats.skipped_bytes +
+        pending_bytes``: every byte is a frame, skipped, or pending."""
+        return len(self._tail)
 
     def feed(self, data: bytes) -> DecodedFrames:
         """Decode every complete frame in the buffered bytes plus `data`."""

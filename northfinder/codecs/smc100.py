@@ -7,6 +7,7 @@ positioner error bits and TE letters so that a driver can raise errors a user un
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 
@@ -158,6 +159,16 @@ def encode_command(address: int, command: str, value: float | None = None, query
 
 
 _COMMAND_RE = re.compile(rb"(\d{1,2})([A-Z]{2})([-+0-9.eE]*)(\??)\r?\n?")
+_NUMBER_RE = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+
+def _finite_number(text: str) -> float | None:
+    """A plain decimal number (no nan/inf/underscores) that is finite, else None."""
+    text = text.strip()
+    if not _NUMBER_RE.fullmatch(text):
+        return None
+    value = float(text)
+    return value if math.isfinite(value) else None
 _REPLY_RE = re.compile(rb"(\d{1,2})([A-Z]{2})([ -~]*?)\r?\n?")
 
 
@@ -166,7 +177,11 @@ def parse_command(data: bytes) -> Command:
     m = _COMMAND_RE.fullmatch(data)
     if m is None:
         raise ProtocolError(f"not an SMC100 command: {data!r}")
-    value = float(m.group(3)) if m.group(3) else None
+    value = None
+    if m.group(3):
+        value = _finite_number(m.group(3).decode())
+        if value is None:
+            raise ProtocolError(f"SMC100 command parameter must be a finite number: {data!r}")
     return Command(int(m.group(1)), m.group(2).decode(), value, bool(m.group(4)))
 
 
@@ -202,10 +217,10 @@ def parse_te(data: bytes | Reply) -> str:
 def parse_position(data: bytes | Reply, command: str = "TP") -> float:
     """TP / SL / SR reply → degrees: ``b'1TP-12.5\\r\\n'`` → -12.5."""
     reply = data if isinstance(data, Reply) else parse_reply(data, command)
-    try:
-        return float(reply.text)
-    except ValueError:
-        raise ProtocolError(f"{reply.command} reply must carry a number, got {reply.text!r}") from None
+    value = _finite_number(reply.text)
+    if value is None:  # nan, inf, '1_0' would pass float() and poison the table angle
+        raise ProtocolError(f"{reply.command} reply must carry a finite number, got {reply.text!r}")
+    return value
 
 
 def parse_ve(data: bytes | Reply) -> str:
