@@ -244,3 +244,12 @@ def test_canopen_other_node_ids_by_offset():
     with pytest.raises(ValueError):
         canopen.CanCodec(0)
     assert canopen.load_database().get_message_by_name("TPDO2").frame_id == 0x290
+
+
+def test_config_reply_after_binary_data_that_looks_like_letters():
+    """A reply straight after a data message: the preceding byte may be an upper-case letter."""
+    from northfinder.codecs import kvh
+
+    assert kvh.find_config_reply(b"\x12\x99QDR,100\n", "DR") == ("100", 10)
+    assert kvh.find_config_reply(b"\x00ZROTUNITS,DEG\r\n", "ROTUNITS") == ("DEG", 16)
+    assert kvh.find_config_reply(b"DR,100", "DR") is None  # incomplete line

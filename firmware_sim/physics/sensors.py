@@ -25,7 +25,6 @@ import struct
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
-from scipy.signal import lfilter
 
 DEG = math.pi / 180.0
 DPH = DEG / 3600.0
@@ -259,6 +258,8 @@ class _ErrorModel:
         gm_in = self.rng["gauss_markov"].standard_normal((n, 3)) * (
             self.gm_sigma * math.sqrt(1.0 - self.phi**2)
         )
+        from scipy.signal import lfilter  # lazy: scipy.signal costs ~0.5-2 s at start-up
+
         gm, self._gm_zi = lfilter([1.0], [1.0, -self.phi], gm_in, axis=0, zi=self._gm_zi)
         steps = self.rng["random_walk"].standard_normal((n, 3)) * self.rw_sigma
         rw = np.cumsum(np.concatenate([self._rw[None, :], steps]), axis=0)[1:]

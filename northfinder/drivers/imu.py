@@ -237,10 +237,11 @@ class Imu:
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while True:
-                for k, value, end in kvh.find_config_replies(bytes(self._text)):
-                    if k == key:
-                        del self._text[:end]
-                        return value
+                found = kvh.find_config_reply(bytes(self._text), key)
+                if found is not None:
+                    value, end = found
+                    del self._text[:end]
+                    return value
                 if self._error is not None:
                     raise self._error
                 remaining = deadline - time.monotonic()
