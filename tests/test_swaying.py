@@ -27,6 +27,7 @@ from northfinder.align.swaying import (
     align_swaying_block,
     attitude_quaternions,
     minimum_duration_s,
+    predicted_heading_std_deg,
     quat_prefix_product,
     quat_to_dcm,
     white_noise_density,
@@ -152,6 +153,23 @@ def test_still_ship_agrees_with_noise_limit_and_coarse(still_mc):
     combined = np.sqrt(still_mc["sw_std"] ** 2 + still_mc["co_std"] ** 2)
     # Both see the same bias, so their difference is bounded by the white-noise parts: 4σ.
     assert np.all(np.abs(still_mc["diff"]) <= 4.0 * combined)
+
+
+def test_predicted_sigma_is_bounded_by_the_gyrocompass_limit():
+    """No estimator beats the increment estimator N/(Ωe·cosL·√T) (a random walk's slope is best
+    estimated from its end points); the cone fit loses only the L_w the smoothing spends on its
+    ramps and the √(6/5) of an unweighted slope fit to a random walk, so it stays within
+    1.25·√(T/(T−L_w)) of the limit; GLS is never worse than OLS."""
+    grade = GRADES["nav"]
+    for t in (120.0, 300.0, 600.0):
+        limit = np.degrees(grade.arw_deg_rt_h * D2R / 60.0 / (OMEGA_E * np.cos(LAT * D2R) * np.sqrt(t)))
+        ols = predicted_heading_std_deg(t, LAT, grade.arw_deg_rt_h, grade.accel_noise_ug_rt_hz)
+        gls = predicted_heading_std_deg(t, LAT, grade.arw_deg_rt_h, grade.accel_noise_ug_rt_hz,
+                                        weighting="gls")
+        assert limit <= gls <= ols * (1 + 1e-9)
+        # The limit is the gyro's: compare the gyro-only figure with it.
+        ols_gyro = predicted_heading_std_deg(t, LAT, grade.arw_deg_rt_h, 0.0)
+        assert limit <= ols_gyro <= 1.25 * np.sqrt(t / (t - 40.0)) * limit
 
 
 # --- pieces ---------------------------------------------------------------------------------

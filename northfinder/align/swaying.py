@@ -49,6 +49,7 @@ __all__ = [
     "velocity_increments_ib0",
     "white_noise_density",
     "minimum_duration_s",
+    "predicted_heading_std_deg",
 ]
 
 KVH_GYRO_RANGE_DPS = 490.0
@@ -428,6 +429,54 @@ def align_swaying(
         earth_axis_ib0=axis,
         diagnostics=diag,
     )
+
+
+def predicted_heading_std_deg(
+    duration_s: float,
+    latitude_deg: float,
+    arw_deg_rt_h: float,
+    accel_noise_ug_rt_hz: float = 0.0,
+    *,
+    max_sway_period_s: float = 10.0,
+    weighting: str = "ols",
+    grid_hz: float = 10.0,
+) -> float:
+    """White-noise 1σ of the cone-fit heading for a level, still geometry (docs/swaying.md §6).
+
+    ``weighting="ols"`` is the default cone fit (unweighted Wahba, eq. 6, covariance by the
+    sandwich formula); ``"gls"`` the noise-weighted step (eq. 9), i.e. what a Kalman filter on
+    the same windows can reach. Used to size windows and to show what a fine alignment can gain.
+    """
+    dt = 1.0 / grid_hz
+    n = int(round(duration_s * grid_hz))
+    lat = latitude_deg * DEG
+    g = float(normal_gravity_m_s2(latitude_deg))
+    lw = int(round(_BH4_MAIN_LOBE_BINS * max_sway_period_s * grid_hz))
+    if n < 2 * lw:
+        raise InputError(f"{duration_s:g} s is shorter than {minimum_duration_s(max_sway_period_s):.0f} s")
+    starts = np.arange(0, n - lw + 1, max(1, lw // 4))
+    h = _kernel(lw)
+    idx = starts[:, None] + np.arange(lw)[None, :]
+    t_mid = (np.arange(n) + 0.5) * dt
+    m_win = g * np.einsum("k,jkc->jc", h, _up_n0(t_mid[idx], lat))
+    t_win = t_mid[idx] @ h
+    q = np.zeros((n + 1, 4))
+    q[:, 0] = 1.0
+    n_g = np.full(3, arw_deg_rt_h * DEG / 60.0)
+    n_a = np.full(3, accel_noise_ug_rt_hz * 1e-6 * STANDARD_GRAVITY_M_S2)
+    cov_phi, cov_acc = _noise_covariances(idx, h, t_win, duration_s, dt, q, n_g, n_a, 0.0, 0.0)
+    m = m_win.shape[0]
+    s_f = _block_skew(m_win)
+    sigma = s_f @ cov_phi[: 3 * m, : 3 * m] @ s_f.T + cov_acc
+    a = np.concatenate([-skew(mj) for mj in m_win])  # C = I: the n0 and i_b0 axes coincide
+    if weighting == "gls":
+        cov = np.linalg.inv(a.T @ np.linalg.pinv(sigma, rcond=1e-12) @ a)
+    elif weighting == "ols":
+        pa = np.linalg.pinv(a)
+        cov = pa @ sigma @ pa.T
+    else:
+        raise InputError(f"unknown weighting '{weighting}': use 'ols' or 'gls'")
+    return float(np.sqrt(cov[2, 2]) / DEG)  # rotation about up = heading (level, small angles)
 
 
 def align_swaying_block(block, rate_hz: float, latitude_deg: float, **kwargs) -> SwayingSolution:
