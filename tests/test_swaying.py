@@ -50,16 +50,17 @@ def _run(seed: int, sway: Sway, grade_name: str, duration_s: float = T_S, lat: f
     return ship, gyro, accel, truth, grade
 
 
-def _monte_carlo(sway: Sway, grade_name: str, n_runs: int, seed0: int):
+def _monte_carlo(sway: Sway, grade_name: str, n_runs: int, seed0: int, with_gls: bool = False):
     sw_err, sw_std, co_err, co_std, diff, gls_err = [], [], [], [], [], []
     for i in range(n_runs):
         _, gyro, accel, truth, grade = _run(seed0 + i, sway, grade_name)
         sol = align_swaying(gyro, accel, RATE_HZ, LAT, gyro_bias_dph=grade.gyro_bias_dph,
                             accel_bias_ug=grade.accel_bias_ug)
         co = coarse_align(gyro, accel, RATE_HZ, LAT)
-        gls = align_swaying(gyro, accel, RATE_HZ, LAT, method="cone-gls", gyro_bias_dph=grade.gyro_bias_dph,
-                            accel_bias_ug=grade.accel_bias_ug)
-        gls_err.append(wrap_deg_180(gls.heading_deg - truth))
+        if with_gls:
+            gls = align_swaying(gyro, accel, RATE_HZ, LAT, method="cone-gls",
+                                gyro_bias_dph=grade.gyro_bias_dph, accel_bias_ug=grade.accel_bias_ug)
+            gls_err.append(wrap_deg_180(gls.heading_deg - truth))
         sw_err.append(wrap_deg_180(sol.heading_deg - truth))
         sw_std.append(sol.heading_std_deg)
         co_err.append(wrap_deg_180(co.heading_deg - truth))
@@ -72,7 +73,7 @@ def _monte_carlo(sway: Sway, grade_name: str, n_runs: int, seed0: int):
 
 @pytest.fixture(scope="module")
 def reference_mc():
-    return _monte_carlo(REFERENCE, "nav", N_RUNS, seed0=5000)
+    return _monte_carlo(REFERENCE, "nav", N_RUNS, seed0=5000, with_gls=True)
 
 
 @pytest.fixture(scope="module")

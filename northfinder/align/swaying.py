@@ -383,7 +383,7 @@ def align_swaying(
         c0, _ = _fit_cone(f_win, m_win, t_end, lat)
         res0 = f_win - m_win @ _earth_rotation_n0_to_nt(t_end, lat).T @ c0
         sigma_f += np.eye(3 * m) * np.mean(res0**2)
-        chol = np.linalg.cholesky(sigma_f)
+        whiten = np.linalg.inv(np.linalg.cholesky(sigma_f))  # Σ^(−1/2), reused by every solve
 
     def solve(f, dphi_end=None):
         if method == "circle":
@@ -391,7 +391,7 @@ def align_swaying(
         else:
             c_ib0_nt, axis = _fit_cone(f, m_win, t_end, lat)
             if method == "cone-gls":
-                c_ib0_nt, axis = _gls_step(f, m_win, c_ib0_nt, t_end, lat, chol)
+                c_ib0_nt, axis = _gls_step(f, m_win, c_ib0_nt, t_end, lat, whiten)
         tweak = np.eye(3) if dphi_end is None else np.eye(3) - skew(dphi_end)
         c_b_n = c_ib0_nt @ tweak @ c_b_ib0_end
         return c_b_n, axis
@@ -569,7 +569,7 @@ def _noise_covariances(idx, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias, ac
     return cov_phi, cov_acc
 
 
-def _gls_step(f_win, m_n0, c_ib0_nt, t_end_s, lat, chol):
+def _gls_step(f_win, m_n0, c_ib0_nt, t_end_s, lat, whiten):
     """One Gauss–Newton step of the generalized least squares min Σ rᵀΣ⁻¹r about the Wahba solution.
 
     Linearized model (docs/swaying.md eq. 9): F_j − Ĉ M_j = −Ĉ[M_j×]δ + e_j, Cov(e) = Σ; the
@@ -579,8 +579,8 @@ def _gls_step(f_win, m_n0, c_ib0_nt, t_end_s, lat, chol):
     c_n0_ib0 = c_ib0_nt.T @ r_nt
     a = np.concatenate([-c_n0_ib0 @ skew(mj) for mj in m_n0])
     r = (f_win - m_n0 @ c_n0_ib0.T).ravel()
-    aw = np.linalg.solve(chol, a)
-    rw = np.linalg.solve(chol, r)
+    aw = whiten @ a
+    rw = whiten @ r
     delta = np.linalg.lstsq(aw, rw, rcond=None)[0]
     ang = np.linalg.norm(delta)
     kx = skew(delta)
