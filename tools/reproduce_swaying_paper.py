@@ -251,7 +251,7 @@ def plot(path: Path, rows, curve, grades, durations) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 5.2))
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 6.0))
     if curve is not None:
         t, e, s = curve
         for k in range(e.shape[0]):
@@ -275,13 +275,15 @@ def plot(path: Path, rows, curve, grades, durations) -> None:
             sel = [r for r in rows if r["grade"] == r_grade and r["method"] == m]
             ax2.semilogy([r["duration_s"] for r in sel], [r["sigma_deg"] for r in sel], styles[m],
                          color=colors.get(r_grade), label=f"{m}, {r_grade}", ms=4)
-        ax2.axhline(bias_floor_deg(r_grade), color=colors.get(r_grade), lw=0.8, ls="-.", alpha=0.6)
+        if bias_floor_deg(r_grade) < 57.3:  # beyond 1 rad the small-angle floor means "no north"
+            ax2.axhline(bias_floor_deg(r_grade), color=colors.get(r_grade), lw=0.8, ls="-.", alpha=0.6)
     ax2.axhline(PAPER_SIGMA_DEG, color="tab:green", lw=1.5, ls=":", label="paper 0.23°")
     ax2.set_xlabel("alignment window [s]")
     ax2.set_ylabel("σψ [°] (dash-dot: bias floor per grade)")
     ax2.set_title("σψ by method, grade and duration")
     ax2.grid(alpha=0.3, which="both")
-    ax2.legend(fontsize=6, ncol=3, loc="lower left")
+    ax2.set_ylim(0.01, 300.0)
+    ax2.legend(fontsize=6, ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.12))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
