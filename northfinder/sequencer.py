@@ -187,7 +187,7 @@ class Sequencer:
         self.allow_home = allow_home
         self.rundir = rundir
         self.on_progress = on_progress or (lambda p: None)
-        self.stop_flag = stop_flag or StopFlag()
+        self.stop_flag = stop_flag if stop_flag is not None else StopFlag()
         self.accel_rate_hz = float(accel_rate_hz)
         self.chunk_s = chunk_s
         self.poll_s = poll_s
@@ -204,9 +204,11 @@ class Sequencer:
     def _check_stop(self) -> None:
         if self.stop_flag:
             state = None
+            moving = None
             try:
                 st = self.turntable.stop()
                 state = st.state_name
+                moving = bool(st.is_moving or st.is_homing)
             except Exception as exc:  # noqa: BLE001 - report, then still save and exit
                 log.warning("could not stop the stage cleanly: %s", exc)
                 state = f"unknown ({exc})"
@@ -217,6 +219,7 @@ class Sequencer:
                     "signal": signal.Signals(self.stop_flag.signum).name,
                     "positions_measured": len(self.positions),
                     "stage_state": state,
+                    "stage_moving": moving,
                 }
             )
             raise Interrupted(self.stop_flag.signum, list(self.positions), state)

@@ -120,10 +120,12 @@ def open_bench(
                     cfg.turntable.port,
                     address=cfg.turntable.address,
                     baudrate=cfg.turntable.baudrate,
+                    timeout_s=2.0,
                     transcript=rundir.transcript_path if rundir else None,
                 ),
             )
         )
+        tt.status()  # fail fast, naming the port, if something else than an SMC100 answers there
         imu = stack.enter_context(
             _guard(
                 "imu",
@@ -495,8 +497,8 @@ def _aborted(
         )
         _save(result, rundir, json_path, report)
     err = RunAborted(
-        f"run stopped ({intr}); stage {intr.stage_state}; {k} of {n} positions saved in "
-        f"{rundir.path} (northfinder replay {rundir.path})"
+        f"run stopped by {signal.Signals(intr.signum).name} after {k} of {n} positions; stage "
+        f"{intr.stage_state}; the data is saved in {rundir.path} (northfinder replay {rundir.path})"
     )
     if intr.signum == signal.SIGTERM:
         err.exit_code = 143
