@@ -34,9 +34,11 @@ class StandInWorld:
         self.sway = sway_m_s2
         self.w = 2 * math.pi * sway_hz
         self.lever_arms: list[tuple[float, ...]] = []
+        self.calls: list[tuple[float, int, float]] = []
 
     def increments(self, t0_s, n, dt_s, lever_arm_b_m):
         self.lever_arms.append(tuple(np.asarray(lever_arm_b_m, dtype=float)))
+        self.calls.append((t0_s, n, dt_s))
         ta = t0_s + np.arange(n) * dt_s
         tb = ta + dt_s
         dv = np.tile(self.f0 * dt_s, (n, 1))
@@ -412,5 +414,25 @@ def test_nav_preset_noise_reaches_the_wire():
     # √(1 + 2ρ²)/√(2n) with lag-1 correlation ρ = −1/2; allow 5 of them, + 1 µg of rounding
     rel = 5 * math.sqrt(1.5) / math.sqrt(2 * (len(z) - 1))
     assert abs(np.std(np.diff(z)) / math.sqrt(2) - sigma_ug) < rel * sigma_ug + 1.0
+    node_bus.shutdown()
+    client.shutdown()
+
+
+def test_sampling_starts_at_power_on():
+    """Powered on late (the simulator powers the node when the adapter's channel opens): the
+    sensor does not make up for the time it was off, and its grid starts at power-on."""
+    node_bus, client = buses()
+    world, model = StandInWorld(), PerfectAccel()
+    node = CanAccelNode(node_bus, world, model)
+    node.advance(7.3)
+    nmt(client, ca.NMT_START)
+    run(node, [7.3, 7.8, 8.3])
+    frames = drain(client)
+    assert (frames[0].arbitration_id, bytes(frames[0].data)) == (HB, b"\x00")
+    assert len(tpdo_pairs(frames)) == 100
+    assert model.samples == 100
+    assert world.calls[0][0] == pytest.approx(7.3, abs=1e-12)
+    t_next = [t0 + n * dt for t0, n, dt in world.calls]
+    assert [t0 for t0, _, _ in world.calls[1:]] == pytest.approx(t_next[:-1], abs=1e-9)  # contiguous
     node_bus.shutdown()
     client.shutdown()

@@ -8,9 +8,10 @@ interval) through the accelerometer's error model, so the node measures what a r
 the table would. Codecs are written here from the protocol sheet (firmware_sim never imports
 northfinder).
 
-The sensor itself runs from power-on whatever the NMT state is (its error model's state moves on
-in pre-operational too); NMT only gates what goes onto the bus. The sample clock is a fixed grid
-k / rate_hz from device time 0, each sample sent at the end of its interval.
+The sensor itself runs from power-on (the first `advance`) whatever the NMT state is (its error
+model's state moves on in pre-operational too); NMT only gates what goes onto the bus. The sample
+clock is a fixed grid t_power_on + k / rate_hz, each sample sent at the end of its interval; a
+reset-node command restarts the application (boot-up, counter 0) but not the sampling.
 """
 
 from __future__ import annotations
@@ -261,8 +262,9 @@ class CanAccelNode(Device):
         self.rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng or 0)
         self.stats = NodeStats()
 
-        self.state: int | None = None  # None until booted
-        self._next_sample = 0  # index k of the next sample (interval [k·dt, (k+1)·dt])
+        self.state: int | None = None  # None until powered on
+        self.power_on_s: float | None = None  # device time of the first `advance`
+        self._next_sample = 0  # index k of the next sample (interval t_on + [k·dt, (k+1)·dt])
         self._next_heartbeat_s = math.inf
         self._counter = 0
         self._emcy_index = 0
@@ -282,6 +284,7 @@ class CanAccelNode(Device):
         if self._closed:
             return
         if self.state is None:
+            self.power_on_s = float(t_device_s)
             self._boot(t_device_s)
         while (msg := self.bus.recv(timeout=0)) is not None:
             self._on_frame(msg, t_device_s)
@@ -322,7 +325,8 @@ class CanAccelNode(Device):
     def _emit_until(self, t_s: float) -> None:
         """Send heartbeats, EMCYs and samples due up to `t_s`, in device-time order."""
         eps = 1e-9
-        k_end = int(math.floor(t_s * self.rate_hz + eps))  # samples k < k_end have ended by t_s
+        t_on = self.power_on_s if self.power_on_s is not None else t_s
+        k_end = int(math.floor((t_s - t_on) * self.rate_hz + eps))  # samples k < k_end ended by t_s
         n = k_end - self._next_sample
         events: list[tuple[float, int, Any]] = []
         while self._next_heartbeat_s <= t_s + eps:
@@ -350,7 +354,7 @@ class CanAccelNode(Device):
 
     def _sample_frames(self, k0: int, n: int) -> list[tuple[float, int, Any]] | None:
         """Measure samples k0…k0+n−1; TPDO events if operational (the sensor runs regardless)."""
-        t0_s = k0 * self.dt_s
+        t0_s = self.power_on_s + k0 * self.dt_s
         _, dv_true = self.world.increments(t0_s, n, self.dt_s, self.lever_arm_b_m)
         dv_meas = self.accel_model.apply(np.asarray(dv_true, dtype=float))
         if self.state != STATE_OPERATIONAL:
@@ -366,7 +370,7 @@ class CanAccelNode(Device):
             keep = self.rng.random((n, 2)) >= self.faults.loss_rate
         self.stats.samples += n
         self.stats.tpdo_dropped += int(2 * n - keep.sum())
-        t_end = (k0 + 1 + np.arange(n)) * self.dt_s
+        t_end = self.power_on_s + (k0 + 1 + np.arange(n)) * self.dt_s
         id1, id2 = TPDO1_BASE + self.node_id, TPDO2_BASE + self.node_id
         events: list[tuple[float, int, Any]] = []
         for i in range(n):
