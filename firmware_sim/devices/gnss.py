@@ -277,12 +277,14 @@ class GnssReceiver(Device):
         return bytes(out)
 
     def _apply_faults(self, s: bytes, u: np.ndarray) -> bytes:
+        """u: 3 uniforms of this sentence (corrupt?, truncate?, where). A truncation cuts off any
+        checksum, so each faulty sentence is counted once, as what a decoder will see."""
+        if u[1] < self.truncate_rate:  # lose the tail: cut inside the sentence, the line still ends
+            cut = 1 + int(u[2] * (len(s) - 4))  # at most up to the '*': the checksum is gone
+            self.sentences_truncated += 1
+            return s[:cut] + b"\r\n"
         if u[0] < self.bad_checksum_rate:  # flip the checksum to another valid-looking value
             wrong = int(s[-4:-2], 16) ^ (1 + int(u[2] * 255))
-            s = s[:-4] + b"%02X\r\n" % wrong
             self.sentences_corrupted += 1
-        if u[1] < self.truncate_rate:  # lose the tail: cut inside the sentence, the line still ends
-            cut = 1 + int(u[2] * (len(s) - 4))
-            s = s[:cut] + b"\r\n"
-            self.sentences_truncated += 1
+            return s[:-4] + b"%02X\r\n" % wrong
         return s

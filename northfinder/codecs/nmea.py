@@ -14,9 +14,10 @@ hence the framing and XOR here; it converts ``ddmm.mmmmmmm`` to degrees rounded 
 latitude/longitude are used as they are.
 
 Epochs: GGA opens an epoch (position, altitude, fix quality, satellites, HDOP); RMC with the same
-time adds speed, course and the date; VTG adds speed and course and closes the epoch. An epoch
-is also closed by the next GGA (or an RMC of another time), so a lost VTG costs no fix. An epoch
-without a usable GGA gives no fix (``incomplete_epochs``). Velocity is horizontal only: NMEA
+time adds speed, course and the date; VTG (no time field) adds speed and course — only if nothing
+was lost since the epoch's last sentence, else it could be the next epoch's — and closes the
+epoch. An epoch is also closed by the next GGA (or an RMC of another time), so a lost VTG costs
+no fix. An epoch without a usable GGA gives no fix (``incomplete_epochs``). Velocity is horizontal only: NMEA
 carries no vertical speed, so ``vel_enu_m_s`` has Up = 0.0 by convention (see :class:`GnssFix`).
 
 Local ENU: :class:`LocalEnu` is the curvilinear local-level map used by the INS
@@ -175,6 +176,7 @@ class _Epoch:
     date: _dt.date | None = None
     rmc_vel: tuple[float, float | None] | None = None  # (speed m/s, course deg)
     vtg_vel: tuple[float, float | None] | None = None
+    damage_mark: int = 0  # the decoder's damage count when this epoch last took a sentence
 
 
 def _sod(t) -> float | None:
@@ -240,6 +242,11 @@ class NmeaDecoder:
             self._line(line.rstrip(b"\r"), out)
         return out
 
+    def _damage(self) -> int:
+        """Sentences (or bytes) lost so far: any of them may have been another epoch's GGA."""
+        s = self.stats
+        return s.bad_checksum + s.truncated + s.malformed + s.garbage_bytes
+
     def _garbage(self, chunk: bytes | bytearray) -> None:
         self.stats.garbage_bytes += len(chunk) - chunk.count(b"\r") - chunk.count(b"\n")
 
@@ -287,7 +294,7 @@ class NmeaDecoder:
         sep = _num(getattr(msg, "sep", None)) or 0.0
         hdop = _num(getattr(msg, "HDOP", None))
         num_sv = getattr(msg, "numSV", "")
-        self._epoch = _Epoch(sod, gga={
+        self._epoch = _Epoch(sod, damage_mark=self._damage(), gga={
             "lat": lat, "lon": lon, "alt": alt, "sep": sep, "quality": quality,
             "num_sv": num_sv if isinstance(num_sv, int) else 0, "hdop": hdop,
         })
@@ -309,6 +316,7 @@ class NmeaDecoder:
             self._epoch = _Epoch(sod)
         if isinstance(date, _dt.date):
             self._epoch.date = date
+        self._epoch.damage_mark = self._damage()
         speed = _num(getattr(msg, "spd", None))
         if speed is not None:
             self._epoch.rmc_vel = (speed * KNOT_M_S, _num(getattr(msg, "cog", None)))
@@ -320,6 +328,9 @@ class NmeaDecoder:
             return
         if self._epoch is None:
             self.stats.incomplete_epochs += 1  # an orphan VTG: its GGA and RMC were lost
+            return
+        if self._epoch.damage_mark != self._damage():  # VTG has no time: with a sentence lost since the
+            self._close(out)  # epoch's last one, it may be the next epoch's (whose GGA was lost)
             return
         knots = _num(getattr(msg, "sogn", None))
         kmh = _num(getattr(msg, "sogk", None))
