@@ -212,6 +212,11 @@ class NmeaDecoder:
         self._last_time_s: float | None = None
         self._min_dt_s: float | None = None
 
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes of a sentence begun but not ended yet (waiting for the next chunk)."""
+        return len(self._buf)
+
     # -- framing ---------------------------------------------------------------------------
     def feed(self, data: bytes) -> list[GnssFix]:
         """Decode what `data` completes; partial sentences wait for the next call."""
