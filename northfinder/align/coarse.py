@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from northfinder.align.swaying import white_noise_density
 from northfinder.constants import DEG, OMEGA_EARTH_RAD_S
 from northfinder.errors import InputError
 from northfinder.rotations import euler_from_dcm
@@ -46,8 +47,6 @@ def coarse_align(
     white gyro noise measured from the data (the mean rate has σ = N/√T per axis) into the east
     gyro's share: σψ = N/(Ωe·cos L·√T), the noise limit of a single-position gyrocompass.
     """
-    from northfinder.align.swaying import white_noise_density  # shared noise estimator
-
     w = np.asarray(gyro_rad_s, dtype=float)
     f = np.asarray(accel_g, dtype=float)
     if w.ndim != 2 or w.shape[1] != 3 or f.shape != w.shape or w.shape[0] < 5:

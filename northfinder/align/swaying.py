@@ -360,19 +360,14 @@ def align_swaying(
     hop = max(1, lw // 4)
     starts = np.arange(0, n - lw + 1, hop)
     h = _kernel(lw)
-    t_mid = (np.arange(n) + 0.5) * dt
-    idx = starts[:, None] + np.arange(lw)[None, :]
-    f_win = np.einsum("k,jkc->jc", h, dv_ib0[idx]) / dt  # F_j, smoothed specific force in i_b0 [m/s²]
-    t_win = t_mid[idx] @ h  # window centres [s]
-    up_win = np.einsum("k,jkc->jc", h, _up_n0(t_mid[idx], lat))
-    m_win = g * up_win  # M_j, the same smoothing applied to the cone model
+    f_win, m_win, t_win = _smooth_windows(dv_ib0, starts, h, dt, lat, g)
     t_end = duration_s
     c_b_ib0_end = quat_to_dcm(q[-1])
 
     # Noise measured from the data (docs/swaying.md §5): it weights the GLS step and gives the 1σ.
     n_gyro = white_noise_density(dtheta, dt)  # rad/√s per body axis
     n_acc = white_noise_density(dv, dt)  # m/s/√s per body axis
-    cov_phi, cov_acc = _noise_covariances(idx, h, t_win, t_end, dt, q, n_gyro, n_acc,
+    cov_phi, cov_acc = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc,
                                           gyro_bias_dph * DPH, accel_bias_ug * 1e-6 * STANDARD_GRAVITY_M_S2)
     m = f_win.shape[0]
     if method == "cone-gls":
@@ -456,15 +451,12 @@ def predicted_heading_std_deg(
         raise InputError(f"{duration_s:g} s is shorter than {minimum_duration_s(max_sway_period_s):.0f} s")
     starts = np.arange(0, n - lw + 1, max(1, lw // 4))
     h = _kernel(lw)
-    idx = starts[:, None] + np.arange(lw)[None, :]
-    t_mid = (np.arange(n) + 0.5) * dt
-    m_win = g * np.einsum("k,jkc->jc", h, _up_n0(t_mid[idx], lat))
-    t_win = t_mid[idx] @ h
+    _, m_win, t_win = _smooth_windows(np.zeros((n, 3)), starts, h, dt, lat, g)
     q = np.zeros((n + 1, 4))
     q[:, 0] = 1.0
     n_g = np.full(3, arw_deg_rt_h * DEG / 60.0)
     n_a = np.full(3, accel_noise_ug_rt_hz * 1e-6 * STANDARD_GRAVITY_M_S2)
-    cov_phi, cov_acc = _noise_covariances(idx, h, t_win, duration_s, dt, q, n_g, n_a, 0.0, 0.0)
+    cov_phi, cov_acc = _noise_covariances(starts, h, t_win, duration_s, dt, q, n_g, n_a, 0.0, 0.0)
     m = m_win.shape[0]
     s_f = _block_skew(m_win)
     sigma = s_f @ cov_phi[: 3 * m, : 3 * m] @ s_f.T + cov_acc
@@ -531,7 +523,24 @@ def _block_skew(f_win: np.ndarray) -> np.ndarray:
     return s
 
 
-def _noise_covariances(idx, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias, accel_bias):
+def _smooth_windows(dv_ib0, starts, h, dt, lat, g):
+    """(F_j [m,3], M_j [m,3], window centres [m]) of eq. 4–5: one dot product per window.
+
+    A loop over the m windows (tens to hundreds), not over samples: it keeps memory at one
+    window instead of m × L_w × 3 for an hour at 1000 Hz.
+    """
+    lw = h.size
+    k = np.arange(lw)
+    f_win = np.empty((starts.size, 3))
+    m_win = np.empty((starts.size, 3))
+    for j, s0 in enumerate(starts):
+        f_win[j] = h @ dv_ib0[s0: s0 + lw] / dt
+        m_win[j] = g * (h @ _up_n0((s0 + k + 0.5) * dt, lat))
+    t_win = (starts + (k + 0.5) @ h) * dt
+    return f_win, m_win, t_win
+
+
+def _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias, accel_bias):
     """Covariances of the noise the windows see (docs/swaying.md §5), all in i_b0 axes.
 
     The attitude random walk φ(t) driven by the gyro white noise has Cov(φ(s), φ(t)) = Q·min(s,t);
@@ -541,7 +550,8 @@ def _noise_covariances(idx, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias, ac
     The accelerometer white noise gives Cov(A_i, A_j) = Q_a·∫h_i h_j dt, its bias prior a
     constant. Returns (cov_phi [3(m+1)]², cov_acc [3m]²); the last block of cov_phi is φ(t_end).
     """
-    m = idx.shape[0]
+    m = starts.size
+    lw = h.size
     n = q.shape[0] - 1
     # Rotate per-axis body noise into i_b0 (the body sways, so average over the record).
     c = quat_to_dcm(q[1:: max(1, n // 200)])
@@ -550,12 +560,11 @@ def _noise_covariances(idx, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias, ac
     qb = np.eye(3) * gyro_bias**2
     qab = np.eye(3) * accel_bias**2
     # Kernels on a coarse grid of D samples (≥ 40 cells per window) for the Brownian covariance.
-    d = max(1, idx.shape[1] // 40)
+    d = max(1, lw // 40)
     n_c = n // d
     hc = np.zeros((m + 1, n_c + 1))
-    cols = idx // d
-    for j in range(m):
-        np.add.at(hc[j], cols[j], h)
+    for j, s0 in enumerate(starts):
+        np.add.at(hc[j], (s0 + np.arange(lw)) // d, h)
     tail = np.cumsum(hc[:, ::-1], axis=1)[:, ::-1]  # H_j at the start of each coarse cell
     tail[m] = 1.0
     tail[m, n_c:] = 0.0
