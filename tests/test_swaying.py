@@ -228,20 +228,17 @@ def test_noise_free_error_is_sway_leakage_only():
 
 
 def test_imu_block_input_and_lost_samples_filled():
-    """An ImuBlock-like object with a 3-sample gap gives the same heading as the full record."""
+    """The driver's ImuBlock with a 3-sample gap gives the same heading as the full record."""
+    from northfinder.drivers.imu import ImuBlock
+
     _, gyro, accel, _, _ = _run(31, REFERENCE, "nav", duration_s=120.0)
     full = align_swaying(gyro, accel, RATE_HZ, LAT)
-
-    class Block:
-        pass
-
     keep = np.ones(gyro.shape[0], bool)
     keep[3000:3003] = False
-    b = Block()
-    b.sample_index = np.arange(gyro.shape[0])[keep] + 77
-    b.gyro_rad_s, b.accel_g = gyro[keep], accel[keep]
-    b.status = np.full(keep.sum(), 0x77, np.uint8)
-    sol = align_swaying_block(b, RATE_HZ, LAT)
+    b = ImuBlock(sample_index=np.arange(gyro.shape[0])[keep] + 77, gyro_rad_s=gyro[keep], accel_g=accel[keep],
+                 status=np.full(keep.sum(), 0x77, np.uint8), temperature_c=np.full(keep.sum(), 25.0),
+                 lost_samples=3, rate_hz=RATE_HZ)
+    sol = align_swaying_block(b, LAT)
     assert sol.diagnostics["lost_samples_filled"] == 3
     assert abs(wrap_deg_180(sol.heading_deg - full.heading_deg)) < 0.1 * full.heading_std_deg
 

@@ -471,8 +471,12 @@ def predicted_heading_std_deg(
     return float(np.sqrt(cov[2, 2]) / DEG)  # rotation about up = heading (level, small angles)
 
 
-def align_swaying_block(block, rate_hz: float, latitude_deg: float, **kwargs) -> SwayingSolution:
-    """`align_swaying` on an `ImuBlock`-like object (sample_index, gyro_rad_s, accel_g, status)."""
+def align_swaying_block(
+    block, latitude_deg: float, *, rate_hz: float | None = None, **kwargs
+) -> SwayingSolution:
+    """`align_swaying` on a `northfinder.drivers.imu.ImuBlock` (or any object with sample_index,
+    gyro_rad_s, accel_g, status and rate_hz; `rate_hz` overrides the block's)."""
+    rate_hz = rate_hz if rate_hz is not None else getattr(block, "rate_hz", None)
     return align_swaying(block.gyro_rad_s, block.accel_g, rate_hz, latitude_deg,
                          sample_index=getattr(block, "sample_index", None),
                          status=getattr(block, "status", None), **kwargs)
