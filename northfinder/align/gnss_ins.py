@@ -209,6 +209,7 @@ class _ErrorStateFilter:
         p0[self.BG] = (config.gyro_bias_std_dph * DPH) ** 2
         p0[self.LA] = config.lever_arm_std_m**2
         self.P = np.diag(p0)
+        self.x = np.zeros(self.n)  # error-state mean: zero after feedback except what could not be applied
         self.P[self.A, self.A] = self.attitude_prior(initial_heading_rad)
         self.omega_nb_b = np.zeros(3)
 
@@ -224,11 +225,16 @@ class _ErrorStateFilter:
         """Fill the attitude rows of F and the gyro-noise columns of G."""
         raise NotImplementedError
 
-    def attitude_feedback(self, x_att: np.ndarray) -> None:
+    def attitude_feedback(self, x_att: np.ndarray) -> np.ndarray:
+        """Correct Ĉ_b^n; return the part of x_att that the correction could not apply (normally 0)."""
         raise NotImplementedError
 
     def heading_var(self) -> float:
         raise NotImplementedError
+
+    def attitude_reset_jacobian(self, c_before: np.ndarray, c_after: np.ndarray) -> np.ndarray:
+        """∂x_att(after the feedback)/∂x_att(before): identity unless the error frame moves."""
+        return np.eye(self.n_att)
 
     # -- time update -----------------------------------------------------------------------------
     def predict(self, s: ChunkSummary) -> None:
@@ -267,6 +273,7 @@ class _ErrorStateFilter:
         phi = np.eye(n) + fdt @ (np.eye(n) + fdt @ (np.eye(n) + fdt / 3.0) / 2.0)
         q = (G * qc) @ G.T * dt
         self.P = phi @ self.P @ phi.T + 0.5 * (phi @ q @ phi.T + q)
+        self.x = phi @ self.x
         if not self.estimate_lever:
             self.P[self.LA, :] = 0.0
             self.P[:, self.LA] = 0.0
@@ -296,18 +303,31 @@ class _ErrorStateFilter:
         R = np.diag(np.concatenate([np.asarray(pos_std_m, float) ** 2, np.asarray(vel_std_m_s, float) ** 2]))
         S = H @ self.P @ H.T + R
         K = np.linalg.solve(S, H @ self.P).T
-        x = K @ z
+        x = self.x + K @ (z - H @ self.x)
         ikh = np.eye(self.n) - K @ H
         self.P = ikh @ self.P @ ikh.T + K @ R @ K.T  # Joseph form
+        j_old, c_old = self.attitude_jacobian(self.lever_arm_b_m), c.copy()
         self.feedback(x)
+        g_att = self.attitude_reset_jacobian(c_old, self.ins.state.c_bn)
+        # Reset Jacobian: the feedback changes Ĉ and l̂a, so the same antenna error is split
+        # differently, δP' + J(l̂a')x_att + Ĉ'δla = δP + J(l̂a)x_att + Ĉδla. Without this the
+        # correlations that say "the antenna is known to the GNSS σ" break at every reset and a
+        # still vehicle's heading random-walks on GNSS noise (docs/gnss-alignment.md §5).
+        g = np.eye(self.n)
+        g[P_, self.A] += j_old - self.attitude_jacobian(self.lever_arm_b_m)
+        g[P_, self.LA] += c_old - self.ins.state.c_bn
+        g[self.A, self.A] = g_att
+        self.P = g @ self.P @ g.T
         return z
 
     def feedback(self, x: np.ndarray) -> None:
-        """Paper eq 23: every estimate corrects the INS and the sensors; the error state resets to 0."""
+        """Paper eq 23: every estimate corrects the INS and the sensors; the error state resets to 0
+        (but for what the attitude correction could not apply, see SinCosFilter.attitude_feedback)."""
         st = self.ins.state
         st.pos_enu_m = st.pos_enu_m - x[P_]
         st.v_enu_m_s = st.v_enu_m_s - x[V_]
-        self.attitude_feedback(x[self.A])
+        self.x = np.zeros(self.n)
+        self.x[self.A] = self.attitude_feedback(x[self.A])
         self.ins.accel_bias_m_s2 = self.ins.accel_bias_m_s2 + x[self.BA]
         self.ins.gyro_bias_rad_s = self.ins.gyro_bias_rad_s + x[self.BG]
         if self.estimate_lever:
@@ -381,18 +401,39 @@ class SinCosFilter(_ErrorStateFilter):
         F[T, self.BG] = -c_bh[0:2]
         G[T, 0:3] = -c_bh[0:2]
 
-    def attitude_feedback(self, x_att: np.ndarray) -> None:
-        """Paper eq 23: C_b^n = Ĉ_b^n − D·Ĉ_b^h, then orthonormalized."""
+    def attitude_feedback(self, x_att: np.ndarray) -> np.ndarray:
+        """Paper eq 23: C_b^n = Ĉ_b^n − D·Ĉ_b^h, then orthonormalized.
+
+        The estimate η̂ need not lie on the circle |(ŝ − η̂1, ĉ − η̂2)| = 1 that true headings do;
+        orthonormalizing projects it, so the heading moves by Δ = (sin ψ̂ − sin ψ̂', cos ψ̂ − cos ψ̂')
+        instead of η̂. The remainder η̂ − Δ stays in the state (it is the error of the new heading
+        as the filter estimates it), which keeps the covariance honest while the error is large."""
         eta1, eta2, ex, ey = x_att
         c_bn = self.ins.state.c_bn
         psi, c_bh = _heading_split(c_bn)
         c, s = math.cos(psi), math.sin(psi)
+        if math.hypot(s - eta1, c - eta2) < 0.5:
+            # (sin ψ, cos ψ) estimated near the origin: the heading is not determined yet (a still
+            # start); keep the heading, carry η̂, correct only the tilt.
+            eta1, eta2 = 0.0, 0.0
         d = np.array([
             [eta2, eta1, -(c * ey - s * ex)],
             [-eta1, eta2, s * ey + c * ex],
             [ey, -ex, 0.0],
         ])
         self.ins.set_attitude(orthonormalize(c_bn - d @ c_bh))
+        psi_new = _heading_split(self.ins.state.c_bn)[0]
+        applied = np.array([s - math.sin(psi_new), c - math.cos(psi_new)])
+        return np.array([x_att[0] - applied[0], x_att[1] - applied[1], 0.0, 0.0])
+
+    def attitude_reset_jacobian(self, c_before: np.ndarray, c_after: np.ndarray) -> np.ndarray:
+        """ε lives in the h frame of the *estimated* heading, so a heading correction Δψ̂ rotates it:
+        ε' = Rz(ψ̂')Rz(−ψ̂)ε = Rz(Δψ̂)ε (large at the first corrections from a large error); η is
+        only shifted by the correction, its covariance is unchanged."""
+        d = _heading_split(c_after)[0] - _heading_split(c_before)[0]
+        out = np.eye(4)
+        out[2:4, 2:4] = [[math.cos(d), -math.sin(d)], [math.sin(d), math.cos(d)]]
+        return out
 
     def heading_var(self) -> float:
         """Var of sin δψ = ĉη1 − ŝη2 (≈ δψ once small)."""
@@ -440,7 +481,15 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
     ins = Strapdown(state, rate, origin)
     ins._prev_dtheta, ins._prev_dv = dth[k_cur - 1].copy(), dv[k_cur - 1].copy()
     flt = filter_cls(ins, cfg, psi0)
-    flt.P[P_, P_] = np.diag(gnss.pos_std_m[j0] ** 2 + cfg.lever_arm_std_m**2)
+    # The INS position starts at the first fix minus Ĉ l̂a, so δP0 = −δC·l̂a − Ĉ·δla + n0 (eq 17 read
+    # backwards): correlated with the attitude and lever-arm errors, not independent of them.
+    j_att = flt.attitude_jacobian(la0)
+    p_att, p_la = flt.P[flt.A, flt.A], flt.P[flt.LA, flt.LA]
+    flt.P[P_, P_] = j_att @ p_att @ j_att.T + c0 @ p_la @ c0.T + np.diag(gnss.pos_std_m[j0] ** 2)
+    flt.P[P_, flt.A] = -j_att @ p_att
+    flt.P[flt.A, P_] = flt.P[P_, flt.A].T
+    flt.P[P_, flt.LA] = -c0 @ p_la
+    flt.P[flt.LA, P_] = flt.P[P_, flt.LA].T
     rows = []
     for j in order[1:]:
         k_to = min(int(math.floor((t_fix[j] - imu.t0_s) * rate + 1e-9)), n_imu)

@@ -54,9 +54,10 @@ class SmallAngleFilter(_ErrorStateFilter):
         F[self.A, self.BG] = -c
         G[self.A, 0:3] = -c
 
-    def attitude_feedback(self, x_att: np.ndarray) -> None:
-        """C = (I − [φ×])⁻¹Ĉ ≈ exp([φ×])Ĉ, orthonormal by construction."""
+    def attitude_feedback(self, x_att: np.ndarray) -> np.ndarray:
+        """C = (I − [φ×])⁻¹Ĉ ≈ exp([φ×])Ĉ, orthonormal by construction; nothing left over."""
         self.ins.set_attitude(rotvec_to_dcm(np.asarray(x_att, float)) @ self.ins.state.c_bn)
+        return np.zeros(3)
 
     def heading_var(self) -> float:
         a = self.A.start + 2
