@@ -622,9 +622,35 @@ def test_slcan_adapter_over_a_real_pty(golden, adapter, data):
 
 
 # --------------------------------------------------------------------------------------------
-# NMEA (northfinder/codecs/nmea.py): being written by the GNSS helper
+# NMEA (northfinder/codecs/nmea.py; tests/test_gnss_io.py has its own fuzz of fix values — this
+# one checks the decoder's documented accounting and chunking under the same mutations as above)
 
 
-def test_nmea_parser_present_or_skip():
-    pytest.importorskip("northfinder.codecs.nmea", reason="northfinder/codecs/nmea.py not written yet")
-    pytest.skip("northfinder/codecs/nmea.py exists now: its fuzz test still has to be added")
+def _nmea_stream(golden) -> bytes:
+    g = golden["nmea"]
+    good = b"".join(s["sentence"].encode() for s in g["good"][:3])
+    return good * 3 + b"".join(b.encode() for b in g["bad"])
+
+
+@fuzz_settings(80)
+@given(st.data())
+def test_nmea_mutated_stream_any_chunking(golden, data):
+    from northfinder.codecs.nmea import NmeaDecoder
+
+    stream = data.draw(mutated(_nmea_stream(golden), splice=b"$GNGGA,", max_ops=6) | st.binary(max_size=300))
+    cuts = data.draw(cut_points(len(stream)))
+    with time_guard():
+        whole = NmeaDecoder()
+        fixes = whole.feed(stream)
+        parts = NmeaDecoder()
+        got = [f for c in chunks(stream, cuts) for f in parts.feed(c)]
+    assert got == fixes and parts.stats == whole.stats and parts.pending_bytes == whole.pending_bytes
+    s = whole.stats
+    # "every sentence-like run of bytes lands in exactly one of sentences / bad_checksum /
+    # truncated / malformed / unknown": each '$' framed so far is one of them; a pending
+    # sentence holds exactly one '$' (its first byte)
+    framed = s.sentences + s.bad_checksum + s.truncated + s.malformed + s.unknown
+    assert framed + (1 if whole.pending_bytes else 0) == stream.count(b"$")
+    assert s.bytes == len(stream) and s.fixes == len(fixes)
+
+
