@@ -6,7 +6,8 @@ Each epoch the receiver sends ``GGA``, ``RMC``, ``VTG`` (talker ``GN``), each
 give identical fixes from the same bytes however they were chunked. It frames sentences itself
 (so that a wrong checksum, a truncated sentence and garbage are told apart and counted), checks
 the checksum, and hands the field parsing of GGA/RMC/VTG to pynmeagps. Bad input is counted and
-skipped; nothing raises out of :meth:`NmeaDecoder.feed`.
+skipped; nothing raises out of :meth:`NmeaDecoder.feed`. The 8-bit XOR catches every single-byte
+error in a sentence, not every pair of them (the protocol's limit, not this decoder's).
 
 pynmeagps notes: it returns ``None`` (no error) for a sentence with a wrong or missing checksum,
 hence the framing and XOR here; it converts ``ddmm.mmmmmmm`` to degrees rounded to 1e-10°
