@@ -52,6 +52,14 @@ def _run(rx: GnssReceiver, until_s: float, step_s: float = 1.0) -> None:
             time.sleep(0.002)
 
 
+def _drained(gnss: Gnss, rx: GnssReceiver, timeout_s: float = 5.0) -> None:
+    """Wait until the driver has read every byte the receiver wrote."""
+    deadline = time.monotonic() + timeout_s
+    while gnss.stats.bytes < rx.port.bytes_written and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert gnss.stats.bytes == rx.port.bytes_written
+
+
 @pytest.fixture(scope="module")
 def drive():
     traj = VehicleTrajectory(duration_s=DURATION_S)
@@ -126,9 +134,7 @@ def test_faults_are_counted_and_skipped_on_the_wire(drive, tmp_path):
     try:
         with Gnss(rx.endpoint(), raw_log=raw, wait_for_data=False) as gnss:
             _run(rx, 30.0, step_s=2.0)
-            deadline = time.monotonic() + 5
-            while gnss.stats.bytes < rx.port.bytes_written and time.monotonic() < deadline:
-                time.sleep(0.01)
+            _drained(gnss, rx)
             fixes = gnss.read_fixes(gnss.pending)
             s = gnss.stats
     finally:
@@ -149,6 +155,7 @@ def test_fixes_until_and_discard_pending(drive):
     try:
         with Gnss(rx.endpoint(), wait_for_data=False) as gnss:
             _run(rx, 5.0)
+            _drained(gnss, rx)
             t0 = rx.start_utc.timestamp()
             first = gnss.fixes_until(t0 + 2.0, timeout_s=5)
             assert [round(f.time_s - t0, 1) for f in first] == [k / 10 for k in range(21)]
