@@ -253,6 +253,13 @@ def test_random_bytes_never_raise_and_never_fix(data):
     assert fixes == []
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.text(max_size=300))
+def test_any_text_replays_without_raising(text):
+    fixes, s = decode_nmea_log(text)
+    assert fixes == [] and s.bytes == len(text)
+
+
 _CLEAN = _join(_epochs(4))
 _CLEAN_FIXES = decode_nmea_log(_CLEAN)[0]
 

@@ -42,9 +42,13 @@ def decode_nmea_log(text_or_bytes: str | bytes) -> tuple[list[GnssFix], NmeaStat
     """Decode a whole raw NMEA log (replay): every fix and the stream's counters.
 
     An epoch still open at the end of the log (its VTG not received) is left out, exactly as the
-    live driver had not delivered it yet.
+    live driver had not delivered it yet. NMEA is ASCII: text is taken as Latin-1 (a character
+    outside it becomes '?', garbage either way); pass the log's bytes for an exact replay.
     """
-    data = text_or_bytes.encode("latin-1") if isinstance(text_or_bytes, str) else bytes(text_or_bytes)
+    if isinstance(text_or_bytes, str):
+        data = text_or_bytes.encode("latin-1", errors="replace")
+    else:
+        data = bytes(text_or_bytes)
     decoder = NmeaDecoder()
     fixes = decoder.feed(data)
     return fixes, decoder.stats
