@@ -6,12 +6,14 @@ with its Euler rates and the body rate ω_nb^b, all as vectorized functions of d
 
 Why this shape: the World turns this into ω_ib^b and f^b, and a filter checks them against GNSS,
 so every quantity must be the exact derivative of the one before it. The speed is a sum of
-quintic smooth-steps (v is C², acceleration C¹), the yaw rate a sum of raised-cosine bumps (ψ̇ C¹,
-ψ C²); velocity and acceleration are closed-form; position is the integral of velocity, tabulated
-once with 5-point Gauss–Legendre per 50 ms cell and completed within a cell by the same rule, so
-d(position)/dt equals velocity to ~1e-12 m/s. The vehicle moves on a flat road without side slip
-(velocity along the heading); the body pitches with longitudinal and rolls with lateral
-acceleration (a suspension, small angles) — those rates make the vertical lever arm observable.
+septic smooth-steps (v is C³), the yaw rate a sum of sin⁴ bumps (ψ̇ C³), so position, heading
+and the suspension pitch/roll that follow the accelerations are all at least C². Velocity and
+acceleration are closed-form; position is the integral of velocity, tabulated once with
+5-point Gauss–Legendre per 50 ms cell and completed within a cell by the same rule, so
+d(position)/dt equals velocity to ~1e-12 m/s. The vehicle moves on a flat road without side
+slip (velocity along the heading); the body pitches with longitudinal and rolls with lateral
+acceleration (a suspension, small angles) plus road roughness — those rates make the vertical
+lever arm observable.
 
 firmware_sim imports nothing from northfinder: everything here is written from the conventions.
 """
@@ -29,27 +31,25 @@ _GL_X, _GL_W = np.polynomial.legendre.leggauss(5)
 
 
 def _smoothstep(u):
-    """Quintic smooth-step S(u) = 10u³ − 15u⁴ + 6u⁵ on [0, 1] with S', S'' zero at both ends."""
+    """Septic smooth-step S(u) = 35u⁴ − 84u⁵ + 70u⁶ − 20u⁷ on [0, 1]: S′, S″, S‴ vanish at both
+    ends, so a speed built from it is C³ and the pitch that follows the acceleration is C²."""
     u = np.clip(u, 0.0, 1.0)
-    return u**3 * (10.0 - 15.0 * u + 6.0 * u**2)
+    return u**4 * (35.0 - 84.0 * u + 70.0 * u**2 - 20.0 * u**3)
 
 
 def _smoothstep_d1(u):
-    inside = (u > 0.0) & (u < 1.0)
     u = np.clip(u, 0.0, 1.0)
-    return np.where(inside, 30.0 * u**2 * (1.0 - u) ** 2, 0.0)
+    return 140.0 * u**3 * (1.0 - u) ** 3
 
 
 def _smoothstep_d2(u):
-    inside = (u > 0.0) & (u < 1.0)
     u = np.clip(u, 0.0, 1.0)
-    return np.where(inside, 60.0 * u * (1.0 - u) * (1.0 - 2.0 * u), 0.0)
+    return 420.0 * u**2 * (1.0 - u) ** 2 * (1.0 - 2.0 * u)
 
 
 def _smoothstep_d3(u):
-    inside = (u > 0.0) & (u < 1.0)
     u = np.clip(u, 0.0, 1.0)
-    return np.where(inside, 60.0 * (1.0 - 6.0 * u + 6.0 * u * u), 0.0)
+    return 840.0 * u * (1.0 - u) * (1.0 - 5.0 * u + 5.0 * u * u)
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,7 @@ class SpeedChange:
 
 @dataclass(frozen=True)
 class Turn:
-    """A raised-cosine yaw-rate bump: ψ̇ = peak·(1 − cos 2πu)/2; heading change = peak·duration/2.
+    """A yaw-rate bump ψ̇ = peak·sin⁴(πu), u = (t − start)/duration; heading change = 3/8·peak·duration.
 
     Positive `peak_rad_s` turns right (heading increases, clockwise from north).
     """
@@ -97,7 +97,7 @@ def default_schedule() -> tuple[list[SpeedChange], list[Turn]]:
         *s_turn(90.0, 6.0, 0.15),
         *s_turn(110.0, 6.0, -0.15),
         *s_turn(125.0, 6.0, 0.12),
-        Turn(150.0, 10.0, np.pi / 10.0),  # 90° right at 5 m/s
+        Turn(150.0, 10.0, np.pi / 2.0 / (0.375 * 10.0)),  # 90° right at 5 m/s
         *s_turn(175.0, 6.0, -0.18),
         *s_turn(195.0, 6.0, 0.18),
         *s_turn(215.0, 6.0, -0.15),
@@ -159,19 +159,22 @@ class VehicleTrajectory:
         return (v, vd, vdd, vddd) if jerk else (v, vd, vdd)
 
     def heading_rad(self, t_s, *, jerk: bool = False):
-        """Heading ψ (unwrapped, clockwise from north), ψ̇, ψ̈ (and ψ⃛ with jerk=True)."""
+        """Heading ψ (unwrapped, clockwise from north), ψ̇, ψ̈ (and ψ⃛ with jerk=True).
+
+        ψ̇ = A sin⁴(πu) = A(3/8 − cos 2πu/2 + cos 4πu/8): C³, so the roll that follows v·ψ̇ is C²."""
         t = np.asarray(t_s, dtype=float)
         psi = np.full_like(t, np.deg2rad(self.heading0_deg))
         rate, acc, jrk = np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)
         for tr in self.turns:
             u = np.clip((t - tr.start_s) / tr.duration_s, 0.0, 1.0)
-            inside = (t > tr.start_s) & (t < tr.start_s + tr.duration_s)
-            w = 2 * np.pi / tr.duration_s
-            psi = psi + tr.peak_rad_s * tr.duration_s / 2.0 * (u - np.sin(2 * np.pi * u) / (2 * np.pi))
-            rate = rate + np.where(inside, tr.peak_rad_s * (1.0 - np.cos(2 * np.pi * u)) / 2.0, 0.0)
-            acc = acc + np.where(inside, tr.peak_rad_s * w / 2.0 * np.sin(2 * np.pi * u), 0.0)
+            a, k = tr.peak_rad_s, np.pi / tr.duration_s
+            sn, cs = np.sin(np.pi * u), np.cos(np.pi * u)
+            psi = psi + a * tr.duration_s * (0.375 * u - np.sin(2 * np.pi * u) / (4 * np.pi)
+                                             + np.sin(4 * np.pi * u) / (32 * np.pi))
+            rate = rate + a * sn**4
+            acc = acc + a * 4.0 * k * sn**3 * cs
             if jerk:
-                jrk = jrk + np.where(inside, tr.peak_rad_s * w * w / 2.0 * np.cos(2 * np.pi * u), 0.0)
+                jrk = jrk + a * 4.0 * k * k * sn**2 * (3.0 * cs**2 - sn**2)
         return (psi, rate, acc, jrk) if jerk else (psi, rate, acc)
 
     # -- translational ---------------------------------------------------------------------------

@@ -38,14 +38,15 @@ from northfinder.align.strapdown import (
     LocalLevel,
     NavState,
     Strapdown,
+    cross3,
     earth_rate_n,
     increments_from_rates,
-    orthonormalize,
+    skew3,
     transport_rate_n,
 )
 from northfinder.constants import DPH, STANDARD_GRAVITY_M_S2, normal_gravity_m_s2
 from northfinder.errors import InputError
-from northfinder.rotations import dcm_from_euler, rot_z, skew
+from northfinder.rotations import dcm_from_euler
 
 # State layout shared by both filters: position, velocity, attitude block, biases, lever arm.
 P_, V_ = slice(0, 3), slice(3, 6)
@@ -254,7 +255,7 @@ class _ErrorStateFilter:
         F = np.zeros((n, n))
         G = np.zeros((n, 12))
         F[P_, V_] = np.eye(3)
-        F[V_, V_] = -skew(2.0 * w_ie + w_en)
+        F[V_, V_] = -skew3(2.0 * w_ie + w_en)
         F[5, 2] = 2.0 * float(normal_gravity_m_s2(math.degrees(lat), h)) / self.ins.origin.k_n
         F[V_, self.A] = self.attitude_jacobian(s.f_b_m_s2)
         F[V_, self.BA] = c
@@ -288,7 +289,7 @@ class _ErrorStateFilter:
         st = self.ins.state
         c = st.c_bn
         la = self.lever_arm_b_m
-        w_la = np.cross(self.omega_nb_b, la)
+        w_la = cross3(self.omega_nb_b, la)
         v_ant = st.v_enu_m_s + c @ w_la
         # eq 17: δP_meas = P̂ + Ĉ l̂a − P_GNSS (extrapolated to the fix time within one IMU sample)
         z = np.concatenate([st.pos_enu_m + c @ la + v_ant * dt_fix_s - pos_m, v_ant - vel_m_s])
@@ -298,8 +299,8 @@ class _ErrorStateFilter:
         H[0:3, self.LA] = c  # eq 18: Ĉ δla
         H[3:6, V_] = np.eye(3)
         H[3:6, self.A] = self.attitude_jacobian(w_la)  # eq 21: δC (ω_nb^b × la)
-        H[3:6, self.LA] = c @ skew(self.omega_nb_b)  # eq 21: Ĉ (ω_nb^b ×) δla
-        H[3:6, self.BG] = -c @ skew(la)  # gyro bias in ω_nb^b × la
+        H[3:6, self.LA] = c @ skew3(self.omega_nb_b)  # eq 21: Ĉ (ω_nb^b ×) δla
+        H[3:6, self.BG] = -c @ skew3(la)  # gyro bias in ω_nb^b × la
         R = np.diag(np.concatenate([np.asarray(pos_std_m, float) ** 2, np.asarray(vel_std_m_s, float) ** 2]))
         S = H @ self.P @ H.T + R
         K = np.linalg.solve(S, H @ self.P).T
@@ -337,7 +338,8 @@ class _ErrorStateFilter:
 def _heading_split(c_bn: np.ndarray) -> tuple[float, np.ndarray]:
     """ψ and C_b^h = Rz(ψ)·C_b^n (paper eq 1: C_b^n = C_h^n C_b^h with C_h^n = Rz(−ψ))."""
     psi = math.atan2(c_bn[0, 1], c_bn[1, 1])
-    return psi, rot_z(psi) @ c_bn
+    c, s = math.cos(psi), math.sin(psi)
+    return psi, np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ c_bn
 
 
 class SinCosFilter(_ErrorStateFilter):
@@ -421,7 +423,7 @@ class SinCosFilter(_ErrorStateFilter):
             [-eta1, eta2, s * ey + c * ex],
             [ey, -ex, 0.0],
         ])
-        self.ins.set_attitude(orthonormalize(c_bn - d @ c_bh))
+        self.ins.set_attitude(c_bn - d @ c_bh)  # set_attitude orthonormalizes
         psi_new = _heading_split(self.ins.state.c_bn)[0]
         applied = np.array([s - math.sin(psi_new), c - math.cos(psi_new)])
         return np.array([x_att[0] - applied[0], x_att[1] - applied[1], 0.0, 0.0])

@@ -24,8 +24,8 @@ from northfinder.align.gnss_ins import (
     _ErrorStateFilter,
     run_alignment,
 )
-from northfinder.align.strapdown import ChunkSummary
-from northfinder.rotations import rotvec_to_dcm, skew
+from northfinder.align.strapdown import ChunkSummary, skew3
+from northfinder.rotations import rotvec_to_dcm
 
 DEFAULT_SMALL_ANGLE_HEADING_STD_DEG = 30.0
 """Prior heading 1σ used when the config says "unknown" (None): a small-angle filter needs a number."""
@@ -45,12 +45,12 @@ class SmallAngleFilter(_ErrorStateFilter):
 
     def attitude_jacobian(self, u_b: np.ndarray) -> np.ndarray:
         """δC·u = −[φ×]Ĉu = [(Ĉu)×]φ."""
-        return skew(self.ins.state.c_bn @ np.asarray(u_b, float))
+        return skew3(self.ins.state.c_bn @ np.asarray(u_b, float))
 
     def attitude_dynamics(self, F, G, s: ChunkSummary, w_in: np.ndarray) -> None:
         """φ̇ = −ω_in × φ − Ĉ δω (psi-angle model)."""
         c = self.ins.state.c_bn
-        F[self.A, self.A] = -skew(w_in)
+        F[self.A, self.A] = -skew3(w_in)
         F[self.A, self.BG] = -c
         G[self.A, 0:3] = -c
 

@@ -1,0 +1,213 @@
+"""GNSS-aided alignment (issue 6): strapdown, the paper's δsin/δcos filter, the small-angle filter.
+
+Forward model: firmware_sim's World with the VehicleTrajectory platform (300 s: still start,
+accelerations, S-turns, a 90° turn, stops) and the kvh1760 GyroModel/AccelModel presets, GNSS
+antenna fixes at 10 Hz with σ 0.5 m / 1 m / 0.05 m/s, lever arm (0.5, 1.5, 1.2) m. One drive
+(fixed seed) serves every scenario: the initial heading error is only the filter's starting guess.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from firmware_sim.physics.table import TableMotion
+from firmware_sim.physics.vehicle import VehicleTrajectory, simulate_drive
+from firmware_sim.physics.world import Site, World
+from northfinder.align.gnss_ins import GnssAlignConfig, GnssSeries, ImuSeries, align_gnss
+from northfinder.align.small_angle import align_gnss_small_angle
+from northfinder.align.strapdown import LocalLevel, NavState, Strapdown
+from northfinder.errors import InputError
+from northfinder.rotations import dcm_to_rotvec
+
+LEVER_TRUTH = np.array([0.5, 1.5, 1.2])
+# a tape-measured lever arm, 0.2–0.25 m off per axis, with an honest σ of 0.3 m
+CONFIG = GnssAlignConfig(lever_arm_b_m=(0.7, 1.3, 1.45), lever_arm_std_m=0.3)
+MOTION_START_S = 10.0  # the default trajectory's still start
+LEVER_HORIZONTAL_M = float(np.hypot(LEVER_TRUTH[0], LEVER_TRUTH[1]))
+
+
+TEST_DRIVE_S = 150.0
+"""The default trajectory's first 150 s (10 s still, 140 s of driving with S-turns, a stop and the
+start of the 15 m/s leg): enough for 'under 1° within 100 s of motion' and half the test time;
+tools/reproduce_gnss_paper.py runs the full 300 s."""
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return simulate_drive(VehicleTrajectory(duration_s=TEST_DRIVE_S), seed=1)
+
+
+@pytest.fixture(scope="module")
+def data(drive):
+    imu = ImuSeries.from_increments(drive.dtheta_rad, drive.dv_m_s, drive.rate_hz)
+    n = len(drive.gnss_t_s)
+    gnss = GnssSeries(
+        drive.gnss_t_s,
+        drive.gnss_pos_enu_m,
+        drive.gnss_vel_enu_m_s,
+        np.tile(drive.gnss_pos_std_m, (n, 1)),
+        np.tile(drive.gnss_vel_std_m_s, (n, 1)),
+        (drive.site.latitude_deg, 0.0, drive.site.height_m),
+    )
+    return imu, gnss, drive.trajectory
+
+
+def heading_error_deg(result, traj) -> np.ndarray:
+    h = result.history
+    return (h.heading_deg - np.rad2deg(traj.heading_rad(h.t_s)[0]) + 180.0) % 360.0 - 180.0
+
+
+def time_below_s(t_s, err_deg, thr_deg) -> float:
+    """First time after which |err| stays below thr until the end (inf: never)."""
+    bad = np.nonzero(np.abs(err_deg) >= thr_deg)[0]
+    if len(bad) and bad[-1] == len(err_deg) - 1:
+        return math.inf
+    return float(t_s[bad[-1] + 1] if len(bad) else t_s[0])
+
+
+def run(fn, data, e0_deg, config=CONFIG):
+    imu, gnss, traj = data
+    psi0 = float(np.rad2deg(traj.heading_rad(np.array([0.0]))[0][0]))
+    res = fn(imu, gnss, psi0 + e0_deg, config)
+    return res, heading_error_deg(res, traj)
+
+
+@pytest.fixture(scope="module")
+def paper_runs(data):
+    return {e0: run(align_gnss, data, e0) for e0 in (10.0, 45.0, 90.0, 135.0, 180.0)}
+
+
+# ---------------------------------------------------------------------------------------------
+def test_vehicle_trajectory_is_self_consistent():
+    """Position, velocity, acceleration and attitude rates are each other's derivatives (C²), and
+    the start is still. Tolerance: central differences with h = 1 ms err by h²/6·(third
+    derivative) ≲ 1e-6 where smooth and by ≲ h·(jump of the second derivative) ≈ 1e-5 at the
+    joins of the speed and turn profiles."""
+    traj = VehicleTrajectory()
+    h = 1e-3
+    t = np.linspace(0.5, 299.5, 6001)
+    p0, p1 = traj.position_enu_m(t - h), traj.position_enu_m(t + h)
+    v0, v1 = traj.velocity_enu_m_s(t - h), traj.velocity_enu_m_s(t + h)
+    assert np.abs((p1 - p0) / (2 * h) - traj.velocity_enu_m_s(t)).max() < 1e-5
+    assert np.abs((v1 - v0) / (2 * h) - traj.acceleration_enu_m_s2(t)).max() < 1e-4
+    c, w, wd = traj.attitude(t)
+    c0, c1 = traj.c_bn(t - h), traj.c_bn(t + h)
+    om = np.einsum("nji,njk->nik", c, (c1 - c0) / (2 * h))  # CᵀĊ = [ω×]
+    assert np.abs(np.stack([om[:, 2, 1], om[:, 0, 2], om[:, 1, 0]], -1) - w).max() < 1e-4
+    w0, w1 = traj.omega_nb_b_rad_s(t - h), traj.omega_nb_b_rad_s(t + h)
+    assert np.abs((w1 - w0) / (2 * h) - wd).max() < 1e-4
+    still = np.linspace(0.0, MOTION_START_S - 1e-6, 50)
+    assert np.all(traj.velocity_enu_m_s(still) == 0.0) and np.all(traj.omega_nb_b_rad_s(still) == 0.0)
+    speed = np.linalg.norm(traj.velocity_enu_m_s(t), axis=1)
+    assert speed.max() > 10.0 and np.any(speed[t > 60] == 0.0)  # it drives, and stops again
+
+
+def test_strapdown_follows_the_world_noise_free():
+    """Ideal increments of the first 60 s (accelerations, two S-turns, braking) through the
+    mechanization: the drift stays far below what the filter can see — position < 0.05 m (a tenth
+    of the GNSS σ), velocity < 5 mm/s (a tenth of its σ), attitude < 3e-6 rad (a tenth of the
+    kvh1760 ARW angle N·√T = 3.5e-6·√60 rad)."""
+    traj = VehicleTrajectory(duration_s=60.0)
+    site = Site(40.0, 100.0)
+    world = World(site, traj, TableMotion(power_on_deg=0.0, ringing_amplitude_deg=None))
+    rate, n = 250.0, 15000
+    dth, dv = world.increments(0.0, n, 1.0 / rate)
+    t0 = np.array([0.0])
+    ins = Strapdown(
+        NavState(np.zeros(3), np.zeros(3), traj.c_bn(t0)[0]), rate, LocalLevel(math.radians(40.0), 0.0, 100.0)
+    )
+    for k in range(0, n, 25):
+        ins.propagate(dth[k : k + 25], dv[k : k + 25])
+    t1 = np.array([60.0])
+    assert np.abs(ins.state.pos_enu_m - traj.position_enu_m(t1)[0]).max() < 0.05
+    assert np.abs(ins.state.v_enu_m_s - traj.velocity_enu_m_s(t1)[0]).max() < 5e-3
+    assert np.linalg.norm(dcm_to_rotvec(ins.state.c_bn @ traj.c_bn(t1)[0].T)) < 3e-6
+
+
+@pytest.mark.parametrize("e0_deg", [10.0, 45.0, 90.0, 135.0, 180.0])
+def test_paper_filter_aligns_from_any_heading(paper_runs, data, e0_deg):
+    """Issue 6 'Must show': under 1° within 100 s of motion from any initial error, position error
+    < 2 m after convergence, lever arm within 0.1 m; the final error within 3× the filter's 1σ."""
+    traj = data[2]
+    res, err = paper_runs[e0_deg]
+    h = res.history
+    t1 = time_below_s(h.t_s, err, 1.0)
+    t05 = time_below_s(h.t_s, err, 0.5)
+    pos_err = np.linalg.norm((h.pos_enu_m - traj.position_enu_m(h.t_s))[:, :2], axis=1)
+    la_err = float(np.linalg.norm(res.lever_arm_m - LEVER_TRUTH))
+    print(
+        f"\nsincos {e0_deg:5.0f}°: t<1°={t1 - MOTION_START_S:.1f} s t<0.5°={t05 - MOTION_START_S:.1f} s "
+        f"end={err[-1]:+.3f}±{res.heading_std_deg:.3f}° pos≤{pos_err[h.t_s >= t1].max():.2f} m "
+        f"la_err={la_err:.3f} m converged_after_s={res.converged_after_s}"
+    )
+    assert t1 - MOTION_START_S <= 100.0
+    assert pos_err[h.t_s >= t1].max() < 2.0
+    assert la_err < 0.1
+    assert abs(err[-1]) < 3.0 * res.heading_std_deg
+    assert res.converged_after_s is not None and res.converged_after_s <= h.t_s[-1] - res.start_s
+
+
+def test_small_angle_filter_fails_at_large_errors(paper_runs, data):
+    """The conventional small-angle filter (heading prior 5°, as after a coarse alignment) on the
+    same data and with the same per-update feedback: from 180° it never gets below 1° and ends
+    tens of degrees off while claiming a fraction of a degree (|error| > 10σ), where the paper's
+    filter is under 1° within 100 s (test above)."""
+    cfg = replace(CONFIG, heading_std_deg=5.0)
+    res, err = run(align_gnss_small_angle, data, 180.0, cfg)
+    h = res.history
+    print(
+        f"\nsmall-angle(5°) 180°: end error {err[-1]:+.1f}° ± {res.heading_std_deg:.3f}°, "
+        f"t<1°={time_below_s(h.t_s, err, 1.0)}"
+    )
+    assert time_below_s(h.t_s, err, 1.0) == math.inf
+    assert abs(err[-1]) > 10.0
+    assert abs(err[-1]) > 10.0 * res.heading_std_deg
+    _, err_paper = paper_runs[180.0]
+    assert abs(err_paper[-1]) < 1.0
+
+
+def test_ignoring_the_lever_arm_hurts(paper_runs, data):
+    """Lever arm ignored (fixed at 0, not estimated), same data: the IMU position is put on the
+    antenna, |C·la|_h = 1.58 m away, for the whole run, where the estimated lever arm leaves
+    < 0.5 m. (The heading suffers too, but over 150 s not beyond its noise: at 300 s the tool
+    shows 0.17–0.22° final errors against ≤ 0.06° — printed here, asserted on position.)"""
+    traj = data[2]
+    cfg = replace(CONFIG, lever_arm_b_m=(0.0, 0.0, 0.0), lever_arm_std_m=0.0)
+    res, err = run(align_gnss, data, 90.0, cfg)
+    h = res.history
+    res_la, err_la = paper_runs[90.0]
+    h_la = res_la.history
+    pos_err = np.linalg.norm((h.pos_enu_m - traj.position_enu_m(h.t_s))[:, :2], axis=1)
+    pos_la = np.linalg.norm((h_la.pos_enu_m - traj.position_enu_m(h_la.t_s))[:, :2], axis=1)
+    late = h.t_s >= MOTION_START_S + 30.0
+    rms, rms_la = (float(np.sqrt(np.mean(e[late] ** 2))) for e in (err, err_la))
+    print(f"\nlever arm ignored 90°: heading rms after 30 s of motion {rms:.3f}° (estimated: {rms_la:.3f}°), "
+          f"position error {pos_err[late].min():.2f}–{pos_err[late].max():.2f} m "
+          f"(estimated: ≤ {pos_la[late].max():.2f} m)")
+    assert np.all(np.abs(pos_err[late] - LEVER_HORIZONTAL_M) < 0.5)
+    assert pos_la[late].max() < 0.5
+
+
+def test_lost_imu_samples_are_filled_and_bad_input_is_refused():
+    rate = 100.0
+    gyro = np.arange(12, dtype=float).reshape(4, 3)
+    imu = ImuSeries(rate, gyro, np.ones((4, 3)), sample_index=np.array([7, 8, 10, 11]))
+    dth, _ = imu.increments()
+    assert dth.shape == (5, 3) and np.allclose(dth[2], dth[1])  # index 9 lost: previous sample held
+    with pytest.raises(InputError, match="sample_index"):
+        ImuSeries(rate, gyro, np.ones((4, 3)), sample_index=np.array([1, 2, 2, 3])).increments()
+    imu = ImuSeries(rate, np.zeros((1000, 3)), np.tile([0.0, 0.0, 1.0], (1000, 1)))
+    gnss = GnssSeries(
+        np.array([1.0]),
+        np.zeros((1, 3)),
+        np.zeros((1, 3)),
+        np.ones((1, 3)),
+        np.ones((1, 3)),
+        (40.0, 0.0, 0.0),
+    )
+    with pytest.raises(InputError, match="GNSS"):
+        align_gnss(imu, gnss, 0.0)
