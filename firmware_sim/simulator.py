@@ -228,7 +228,6 @@ class Simulator:
             self._close_all()
             raise
         self._endpoints = self.endpoints
-        self.clock.start()
         self._thread = threading.Thread(target=self._run, name="firmware_sim-loop", daemon=True)
         self._thread.start()
         log.info("bench running: %s", self._endpoints)
@@ -249,6 +248,12 @@ class Simulator:
     def _run(self) -> None:
         self._can_powered = False
         try:
+            # The sensor models' filters need scipy.signal, which takes 0.5-2 s to import: load it
+            # here, after the endpoints are out and before device time starts, so that the first
+            # samples are not a burst of catch-up (the devices are "booting" meanwhile).
+            import scipy.signal  # noqa: F401
+
+            self.clock.start()
             while not self._stop.is_set():
                 by_fd = {fd: d for d in self.devices if (fd := d.fileno()) is not None}
                 wfds = [p.fileno() for p in self._ports() if p.pending and not p.closed and p.connected]
