@@ -116,7 +116,10 @@ class Accelerometer:
         rate_hz: float = 100.0,
         timeout_s: float = 2.0,
         bus: can.BusABC | None = None,
+        bus_options: dict | None = None,
     ) -> None:
+        """`bus_options` go to `can.Bus` as they are (e.g. ``{"sleep_after_open": 0}`` for an slcan
+        adapter that needs no settling time, such as firmware_sim's)."""
         self.interface = interface
         self.channel = channel
         self.port = f"{interface}:{channel}"
@@ -133,7 +136,8 @@ class Accelerometer:
         self._own_bus = bus is None
         if bus is None:
             try:
-                bus = can.Bus(interface=interface, channel=channel, bitrate=self.bitrate)
+                options = dict(bus_options or {})
+                bus = can.Bus(interface=interface, channel=channel, bitrate=self.bitrate, **options)
             except Exception as exc:  # noqa: BLE001 - python-can raises many types; all are the user's setup
                 raise DeviceError(
                     DEVICE, self.port,
