@@ -27,7 +27,8 @@ def normal_gravity_m_s2(latitude_deg, height_m=0.0):
     s2 = np.sin(np.deg2rad(latitude_deg)) ** 2
     g0 = _GAMMA_E * (1.0 + _SOMIGLIANA_K * s2) / np.sqrt(1.0 - WGS84_E2 * s2)
     h = np.asarray(height_m, dtype=float)
-    return g0 * (1.0 - 2.0 / WGS84_A_M * (1.0 + WGS84_F + _M - 2.0 * WGS84_F * s2) * h + 3.0 * h**2 / WGS84_A_M**2)
+    free_air = 2.0 / WGS84_A_M * (1.0 + WGS84_F + _M - 2.0 * WGS84_F * s2)
+    return g0 * (1.0 - free_air * h + 3.0 * h**2 / WGS84_A_M**2)
 
 
 def earth_rate_enu_rad_s(latitude_deg) -> np.ndarray:
@@ -50,3 +51,10 @@ def wrap_deg_360(angle_deg):
     """Wrap to [0, 360)."""
     out = np.mod(np.asarray(angle_deg, dtype=float), 360.0)
     return np.where(out >= 360.0, 0.0, out)
+
+
+def radii_of_curvature_m(latitude_deg):
+    """WGS-84 meridian R_M and prime-vertical R_N radii of curvature [m] at geodetic latitude."""
+    s2 = np.sin(np.deg2rad(latitude_deg)) ** 2
+    w = np.sqrt(1.0 - WGS84_E2 * s2)
+    return WGS84_A_M * (1.0 - WGS84_E2) / w**3, WGS84_A_M / w

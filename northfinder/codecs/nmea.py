@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from pynmeagps import VALCKSUM, NMEAReader
 
-from northfinder.constants import WGS84_A_M, WGS84_E2
+from northfinder.constants import radii_of_curvature_m
 
 __all__ = [
     "KNOT_M_S",
@@ -68,13 +68,6 @@ def checksum(body: bytes) -> int:
     if not body:
         return 0
     return int(np.bitwise_xor.reduce(np.frombuffer(body, dtype=np.uint8)))
-
-
-def radii_of_curvature_m(lat_deg):
-    """WGS-84 meridian R_M and prime-vertical R_N radii of curvature [m] at geodetic latitude."""
-    s2 = np.sin(np.deg2rad(lat_deg)) ** 2
-    w = np.sqrt(1.0 - WGS84_E2 * s2)
-    return WGS84_A_M * (1.0 - WGS84_E2) / w**3, WGS84_A_M / w
 
 
 @dataclass(frozen=True)
