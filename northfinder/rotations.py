@@ -83,7 +83,9 @@ def dcm_to_rotvec(c) -> np.ndarray:
     c = np.asarray(c, dtype=float)
     cos_a = np.clip((np.trace(c, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     angle = np.arccos(cos_a)
-    v = np.stack([c[..., 2, 1] - c[..., 1, 2], c[..., 0, 2] - c[..., 2, 0], c[..., 1, 0] - c[..., 0, 1]], axis=-1)
+    v = np.stack(
+        [c[..., 2, 1] - c[..., 1, 2], c[..., 0, 2] - c[..., 2, 0], c[..., 1, 0] - c[..., 0, 1]], axis=-1
+    )
     sin_a = np.sin(angle)
     factor = np.where(angle < 1e-8, 0.5 + angle**2 / 12.0, angle / (2.0 * np.where(angle < 1e-8, 1.0, sin_a)))
     return v * factor[..., None]

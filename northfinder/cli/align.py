@@ -31,7 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="RUN_DIR", help="run directory for raw logs and the report")
     p.add_argument("--config", metavar="BENCH_TOML", help="bench configuration for real hardware")
     p.add_argument("--simulate", action="store_true", help="start firmware-sim and align on it")
-    p.add_argument("--grade", default=None, help="simulated sensor grade (nav, kvh1760, tactical-mems, consumer)")
+    p.add_argument("--grade", default=None,
+                   help="simulated sensor grade (nav, kvh1760, tactical-mems, consumer)")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--time-scale", type=float, default=None, metavar="K")
     p.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
