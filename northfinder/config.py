@@ -52,6 +52,9 @@ class AccelerometerConfig:
     node_id: int = 0x10
     rate_hz: float = 100.0
     """The node's TPDO rate; the dwell is collected as dwell_s·rate_hz samples."""
+    bus_options: dict[str, Any] = field(default_factory=dict)
+    """Extra python-can bus arguments, e.g. `{sleep_after_open = 0.1}` for an slcan adapter that
+    does not reset when its port opens (python-can waits 2 s by default)."""
 
 
 @dataclass
@@ -142,6 +145,10 @@ def _coerce(section: str, name: str, value: Any, default: Any, source: str) -> A
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise _bad(key, value, "use a number", source)
         return float(value)
+    if isinstance(default, dict):
+        if not isinstance(value, dict):
+            raise _bad(key, value, "use an inline table, e.g. {sleep_after_open = 0.1}", source)
+        return dict(value)
     if isinstance(default, str):
         if not isinstance(value, str):
             raise _bad(key, value, "use a quoted string", source)

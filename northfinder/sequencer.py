@@ -159,6 +159,9 @@ class _AccelSpan:
 
     counter: np.ndarray
     accel_g: np.ndarray
+    first_counter: int
+    """The span asked for (device time), whether or not its edge samples arrived."""
+    last_counter: int
 
 
 class Sequencer:
@@ -333,7 +336,9 @@ class Sequencer:
                 getattr(self.accel, "port", None),
                 f"no samples in counters {c0}…{c1}; the node's counter jumped — check the bus",
             )
-        return _AccelSpan(np.concatenate([k[0] for k in kept]), np.concatenate([k[1] for k in kept], axis=0))
+        return _AccelSpan(
+            np.concatenate([k[0] for k in kept]), np.concatenate([k[1] for k in kept], axis=0), c0, c1
+        )
 
     def dwell(self, index: int, target_deg: float) -> tuple[list[Any], Any]:
         """Collect dwell_s·rate IMU samples right after settling (in chunks, reporting live
@@ -425,7 +430,7 @@ class Sequencer:
         gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0)
         counter = np.asarray(accel_block.counter)
         imu_lost = int(idx[-1] - idx[0] + 1 - idx.size)
-        accel_lost = int(counter[-1] - counter[0] + 1 - counter.size)
+        accel_lost = int(accel_block.last_counter - accel_block.first_counter + 1 - counter.size)
         means = position_means(
             angle_deg, gyro, np.asarray(accel_block.accel_g), imu_lost, accel_lost, float(self.imu.rate_hz)
         )
@@ -444,8 +449,8 @@ class Sequencer:
                     "lost": imu_lost,
                 },
                 "accel": {
-                    "first_counter": int(counter[0]),
-                    "last_counter": int(counter[-1]),
+                    "first_counter": int(accel_block.first_counter),
+                    "last_counter": int(accel_block.last_counter),
                     "samples": int(counter.size),
                     "lost": accel_lost,
                 },

@@ -3,8 +3,9 @@
 firmware_sim runs in a separate process (real ptys for the stage and the IMU, its slcan adapter on a
 pty for the CAN accelerometer, python-can's own `slcan` client on our side); one variant runs it
 in-process with the accelerometer on python-can's `virtual` bus; the socketcan variant needs vcan0.
-Device time runs TIME_SCALE× the wall clock and the sim's stage turns at 90°/s (a config file), so
-a run of 8 positions × DWELL_S takes a few seconds; the physics and the noise are unchanged.
+Device time runs TIME_SCALE× the wall clock and the sim's stage turns at 90°/s with its ringing
+decaying in 0.1 s (a config file: a stiffer, faster stage), so a run of 8 positions × DWELL_S takes
+a few seconds; the sensors' physics and noise are the presets'.
 
 Tolerances come from the noise limit of docs/CONVENTIONS.md (northfinder.estimators.limits, with
 the tilt factor of docs/estimators.md), never from what a run printed.
@@ -35,8 +36,8 @@ pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parents[1]
 POSITIONS = 8
 DWELL_S = 3.0
-TIME_SCALE = 12.0
-FAST_STAGE_TOML = "stage_speed_dps = 90.0\nstage_accel_dps2 = 360.0\n"
+TIME_SCALE = 10.0
+FAST_STAGE_TOML = "stage_speed_dps = 90.0\nstage_accel_dps2 = 360.0\nstage_ringing_decay_s = 0.1\n"
 SIGMA_TOLERANCE = 0.20  # reported σ within 20 % of the noise limit (issue 4)
 
 
@@ -96,6 +97,7 @@ def _check_accuracy(result: dict, truth: dict) -> None:
     for p in result["positions"]:
         assert p["samples"] == int(DWELL_S * 1000)
         assert p["accel_samples"] + p["accel_lost_samples"] == int(DWELL_S * 100)
+        assert p["accel_lost_samples"] <= 0.1 * DWELL_S * 100  # a loaded host may drop a few CAN frames
     limit = _noise_limit_deg(truth, result["duration_device_s"])
     sigma = result["heading_std_deg"]
     err = result["error_deg"]
@@ -173,6 +175,7 @@ def _in_process_run(tmp_path: Path, interface: str, channel: str) -> None:
         time_scale=TIME_SCALE,
         stage_speed_dps=90.0,
         stage_accel_dps2=360.0,
+        stage_ringing_decay_s=0.1,
         can_interface=interface,
         can_channel=channel,
     )
@@ -297,7 +300,9 @@ def sim_endpoints(fast_stage):
 def _bench_toml(path: Path, turntable: str, imu: str, channel: str, extra: str = "") -> Path:
     path.write_text(
         f"[turntable]\nport = '{turntable}'\n[imu]\nport = '{imu}'\n"
-        f"[accelerometer]\ninterface = 'slcan'\nchannel = '{channel}'\n[site]\nlatitude_deg = 40.0\n{extra}"
+        f"[accelerometer]\ninterface = 'slcan'\nchannel = '{channel}'\n"
+        "bus_options = {sleep_after_open = 0.05}\n"
+        f"[site]\nlatitude_deg = 40.0\n{extra}"
     )
     return path
 

@@ -29,7 +29,7 @@ def probe_turntable(cfg: bench.BenchConfig) -> str:
     from northfinder.drivers.turntable import Turntable
 
     t = cfg.turntable
-    with Turntable(t.port, address=t.address, baudrate=t.baudrate) as tt:
+    with Turntable(t.port, address=t.address, baudrate=t.baudrate, timeout_s=5.0) as tt:
         version = tt.version()
         st = tt.status()
         errors = ", ".join(st.error_names) if st.errors else "no errors"
@@ -56,13 +56,21 @@ def probe_accelerometer(cfg: bench.BenchConfig) -> str:
     from northfinder.drivers.accelerometer import Accelerometer
 
     a = cfg.accelerometer
-    with Accelerometer(a.interface, a.channel, bitrate=a.bitrate, node_id=a.node_id) as acc:
-        state = acc.wait_heartbeat(timeout_s=3.0)
-        name = HEARTBEAT_STATES.get(state, f"unknown 0x{state:02X}")
-        return (
-            f"accelerometer node 0x{a.node_id:02X} on {a.interface} {a.channel}: heartbeat {name} "
-            f"(0x{state:02X})"
-        )
+    bus = None
+    if a.bus_options:
+        from northfinder.cli.find import open_can_bus
+
+        bus = open_can_bus(cfg, a.bus_options)
+    try:
+        with Accelerometer(a.interface, a.channel, bitrate=a.bitrate, node_id=a.node_id, bus=bus) as acc:
+            state = acc.wait_heartbeat(timeout_s=3.0, fresh=False)
+    finally:
+        if bus is not None:
+            bus.shutdown()
+    name = HEARTBEAT_STATES.get(state, f"unknown 0x{state:02X}")
+    return (
+        f"accelerometer node 0x{a.node_id:02X} on {a.interface} {a.channel}: heartbeat {name} (0x{state:02X})"
+    )
 
 
 def _probe(

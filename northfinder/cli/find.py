@@ -120,7 +120,7 @@ def open_bench(
                     cfg.turntable.port,
                     address=cfg.turntable.address,
                     baudrate=cfg.turntable.baudrate,
-                    timeout_s=2.0,
+                    timeout_s=5.0,
                     transcript=rundir.transcript_path if rundir else None,
                 ),
             )
@@ -139,8 +139,9 @@ def open_bench(
             )
         )
         bus = None
+        can_kwargs = {**(can_kwargs or {}), **a.bus_options}
         if can_kwargs:
-            bus = _open_can_bus(cfg, can_kwargs)
+            bus = open_can_bus(cfg, can_kwargs)
             stack.callback(bus.shutdown)
         acc = stack.enter_context(
             _guard(
@@ -160,7 +161,7 @@ def open_bench(
         yield tt, imu, acc
 
 
-def _open_can_bus(cfg: bench.BenchConfig, can_kwargs: dict[str, Any]) -> Any:
+def open_can_bus(cfg: bench.BenchConfig, can_kwargs: dict[str, Any]) -> Any:
     import can
 
     a = cfg.accelerometer
