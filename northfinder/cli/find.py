@@ -24,8 +24,13 @@ from northfinder.rundir import CONFIG, RESULT, RunDir, compute_result
 from northfinder.sequencer import Interrupted, Progress, Sequencer, StopFlag
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 
-DEFAULT_TIME_SCALE = 20.0
-"""--simulate's default device-time speed-up (see docs/result-schema.md for the measurement)."""
+DEFAULT_TIME_SCALE = 12.0
+"""--simulate's default device-time speed-up. python-can's slcan client must keep up with 200·K CAN
+frames/s: measured here, K = 15 already fell behind on the shared 2-core host and K = 20 dropped
+frames; K = 12 kept up."""
+SIM_DEFAULT_DWELL_S = 20.0
+"""--simulate's default dwell per position [device s] (real benches: [run] dwell_s, default 30):
+8 × 20 s at K = 12 finishes in under 30 s wall."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,7 +45,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--simulate", action="store_true", help="start firmware-sim as a subprocess and run on it"
     )
     p.add_argument("--positions", type=int, metavar="N", help="number of table positions (≥ 3)")
-    p.add_argument("--dwell", type=float, metavar="S", help="dwell per position [device s]")
+    p.add_argument(
+        "--dwell",
+        type=float,
+        metavar="S",
+        help=f"dwell per position [device s] (default [run] dwell_s, {SIM_DEFAULT_DWELL_S:g} if --simulate)",
+    )
     p.add_argument("--order", choices=bench.ORDERS, help="position order")
     p.add_argument("--method", choices=bench.METHODS, help="heading method reported as the result")
     p.add_argument("--json", metavar="PATH", help="also write the result JSON here")
@@ -357,6 +367,7 @@ def run(args: argparse.Namespace) -> int:
         )
         cfg = bench.BenchConfig(source="--simulate")
         cfg.site.latitude_deg = settings.latitude_deg
+        cfg.run.dwell_s = SIM_DEFAULT_DWELL_S
         cfg = _apply_overrides(cfg, args)
     else:
         cfg = _apply_overrides(bench.load(args.config), args)
