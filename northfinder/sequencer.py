@@ -397,6 +397,7 @@ class Sequencer:
             blocks, accel_block = self.dwell(i, target)
             self._check_stop()
             angle_deg = float(self.turntable.position_deg())
+            self._flush_logs()
             means = self._record(i, target, angle_deg, settle, blocks, accel_block)
             self.on_progress(
                 Progress(
@@ -416,6 +417,21 @@ class Sequencer:
             self._move(self._plan[0])
         self._event({"event": "end", "complete": True, "positions_measured": len(self.positions)})
         return list(self.positions)
+
+    def _flush_logs(self) -> None:
+        """Push the raw logs to disk after each position (the IMU and stage transports flush every
+        write; the CAN log is a python-can writer that buffers)."""
+        flush = getattr(self.accel, "flush_log", None)
+        if callable(flush):
+            flush()
+            return
+        # Until the Accelerometer driver has flush_log(): its can.Logger's file, under its lock
+        # (the notifier thread writes to it).
+        lock = getattr(self.accel, "_lock", None) or contextlib.nullcontext()
+        with lock:
+            handle = getattr(getattr(self.accel, "_logger", None), "file", None)
+            if handle is not None and not handle.closed:
+                handle.flush()
 
     def _record(
         self,
