@@ -63,7 +63,7 @@ def probe_accelerometer(cfg: bench.BenchConfig) -> str:
         bus = open_can_bus(cfg, a.bus_options)
     try:
         with Accelerometer(a.interface, a.channel, bitrate=a.bitrate, node_id=a.node_id, bus=bus) as acc:
-            state = acc.wait_heartbeat(timeout_s=3.0, fresh=False)
+            state = acc.wait_heartbeat(timeout_s=3.0)
     finally:
         if bus is not None:
             bus.shutdown()

@@ -1,0 +1,73 @@
+"""The settle rule, the device-time pairing of the two sensor clocks, and the shared mean function."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from northfinder.config import RunConfig
+from northfinder.rundir import position_means
+from northfinder.sequencer import ClockSync, settle_reached
+
+RATE_HZ = 1000.0
+WINDOW = 200  # 0.2 s
+
+
+def _ringing_z_dph(t_s: np.ndarray, amp_deg: float, freq_hz: float, decay_s: float, noise_dph: float, rng):
+    """Gyro z of a table top ringing after a stop: d/dt of A·e^(−t/τ)·sin(2πft), plus white noise."""
+    w = 2 * np.pi * freq_hz
+    rate_deg_s = amp_deg * np.exp(-t_s / decay_s) * (w * np.cos(w * t_s) - np.sin(w * t_s) / decay_s)
+    return rate_deg_s * 3600.0 + 9.6 + rng.normal(0.0, noise_dph, t_s.size)
+
+
+def _first_settled_window(z: np.ndarray, cfg: RunConfig) -> int | None:
+    windows = [z[k : k + WINDOW] for k in range(0, z.size - WINDOW + 1, WINDOW)]
+    for k in range(1, len(windows)):
+        if settle_reached(windows[: k + 1], cfg.settle_ratio, cfg.settle_rest_dph):
+            return k
+    return None
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_settle_waits_until_the_ringing_is_below_the_noise(seed):
+    rng = np.random.default_rng(seed)
+    cfg = RunConfig()
+    t = np.arange(int(6.0 * RATE_HZ)) / RATE_HZ
+    noise = 3.8  # nav grade at 1 kHz: 0.002 °/√h · 60 · √1000 ≈ 3.8 °/h per sample
+    z = _ringing_z_dph(t, amp_deg=0.005, freq_hz=10.0, decay_s=0.3, noise_dph=noise, rng=rng)
+    k = _first_settled_window(z, cfg)
+    assert k is not None
+    t_settled = (k + 1) * WINDOW / RATE_HZ
+    # ringing rate amplitude 0.005°·2π·10 Hz = 1131 °/h; it reaches the per-sample noise after
+    # τ·ln(1131/3.8) ≈ 1.7 s. The rule must not stop before the envelope is near the noise.
+    envelope = 0.005 * 2 * np.pi * 10.0 * 3600.0 * np.exp(-t_settled / 0.3)
+    assert envelope < 2.0 * noise
+    assert t_settled < 4.0
+
+
+def test_a_steady_slew_is_not_settled():
+    rng = np.random.default_rng(1)
+    cfg = RunConfig()
+    slew = 20.0 * 3600.0 + rng.normal(0.0, 3.8, 2 * WINDOW)  # 20 °/s, steady
+    assert not settle_reached([slew[:WINDOW], slew[WINDOW:]], cfg.settle_ratio, cfg.settle_rest_dph)
+    rest = 9.6 + rng.normal(0.0, 3.8, 2 * WINDOW)
+    assert settle_reached([rest[:WINDOW], rest[WINDOW:]], cfg.settle_ratio, cfg.settle_rest_dph)
+
+
+def test_clock_sync_maps_imu_samples_to_accelerometer_counters():
+    sync = ClockSync(imu_index=5000, accel_counter=17, imu_rate_hz=1000.0, accel_rate_hz=100.0)
+    assert sync.accel_counter_at(5000) == 17
+    assert sync.accel_counter_at(5010) == 18
+    assert sync.accel_counter_at(5001) == 18  # the first accelerometer sample at or after the IMU one
+    assert sync.accel_counter_at(35000) == 17 + 3000
+
+
+def test_position_means_do_not_depend_on_memory_layout():
+    rng = np.random.default_rng(7)
+    gyro = rng.normal(0.0, 1e-5, (30000, 3))
+    accel = rng.normal(0.0, 1e-3, (3000, 3)) + [0.0, 0.0, 1.0]
+    a = position_means(45.0, gyro, accel, 0, 0, 1000.0)
+    b = position_means(45.0, np.asfortranarray(gyro), accel[::1].copy(order="F"), 0, 0, 1000.0)
+    c = position_means(45.0, np.concatenate([gyro[:7000], gyro[7000:]]), accel, 0, 0, 1000.0)
+    assert a == b == c  # bit for bit
+    assert a.samples == 30000 and a.accel_samples == 3000 and a.duration_device_s == 30.0
