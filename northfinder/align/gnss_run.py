@@ -1,0 +1,753 @@
+"""`northfinder align --mode gnss`: acquisition, time alignment, result assembly and replay.
+
+What: read a KVH format-A IMU and an NMEA GNSS receiver for a window of device time, keep their
+raw bytes in the run directory as they arrive, then align with the paper's δsin/δcos filter
+(northfinder.align.gnss_ins.align_gnss) and, on the same data, the small-angle filter
+(northfinder.align.small_angle). The filters run once the window is complete (not live): the
+progress bar shows device time, fixes and the stream counters.
+
+Why here: the CLI (northfinder/cli/align_gnss.py) and `northfinder replay` share one function,
+:func:`compute_gnss_result`, fed from the drivers' arrays live and from the pure decoders
+(`decode_imu_stream`, `decode_nmea_log`) in replay — the same bytes give the same arrays, so the
+replayed result is bit-identical.
+
+Time alignment (IMU sample index ↔ GNSS time), docs/result-schema-align.md "## gnss":
+- simulator (`truth-log`): firmware-sim's truth log names the absolute sample k0 of the first
+  IMU frame delivered to this client, so sample index i starts at device time (k0 + i)/rate; NMEA
+  UTC − gnss_start_utc is device time. Exact.
+- hardware (`host`): every chunk read from either port is stamped with the host's monotonic clock
+  (`imu.rx`, `gnss.rx`: "host_s total_bytes" a line). Each chunk's last complete frame/fix gives
+  host ≥ device + offset + latency; the lower envelope (minimum) of host − device time per stream
+  estimates each offset, and their difference maps IMU samples to GNSS time. Limits: the GNSS
+  sends an epoch's NMEA after computing it (typically 20–100 ms after the epoch, plus ~20 ms on the
+  wire at 115200 baud) — this latency is not seen by the host and biases the mapping unless
+  `[gnss] latency_s` is given; USB-serial adapters batch bytes (1–16 ms); clock drift between host
+  and devices (tens of ppm: < 0.03 ms over 300 s) is ignored.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import tomllib
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from northfinder.align.gnss_ins import GnssAlignConfig, GnssAlignResult, GnssSeries, ImuSeries, align_gnss
+from northfinder.align.small_angle import align_gnss_small_angle
+from northfinder.codecs.kvh import KvhDecoder
+from northfinder.codecs.nmea import GnssFix, LocalEnu, NmeaDecoder, fixes_to_arrays
+from northfinder.constants import wrap_deg_180
+from northfinder.errors import ConfigError, InputError
+from northfinder.rundir import CONFIG, EVENTS, IMU_RAW, RESULT, RunDir
+
+KIND = "align-gnss"
+SCHEMA = "northfinder.align-gnss/1"
+GNSS_NMEA = "gnss.nmea"
+IMU_RX = "imu.rx"
+GNSS_RX = "gnss.rx"
+TRUTH_LOG = "truth.jsonl"
+DEFAULT_DURATION_S = 300.0
+VEL_UP_STD_M_S = 100.0
+"""NMEA carries no vertical speed (Up is 0 by convention): its σ says "not measured"."""
+VEL_UNKNOWN_STD_M_S = 1000.0
+"""An epoch whose RMC and VTG were both lost: its velocity row is 0 with this σ (position still used)."""
+SMALL_ANGLE_HEADING_STD_DEG = 30.0
+"""The small-angle filter needs a heading σ even when the heading is unknown (gnss_ins docs)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Configuration: [imu] and [gnss] of bench.toml (other tables are other commands')
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class ImuPort:
+    """`[imu]`: the KVH format-A IMU."""
+
+    port: str = ""
+    rate_hz: float = 1000.0
+    baudrate: int = 921600
+    rot_format: str = "DELTA"
+    rot_units: str = "RAD"
+
+
+@dataclass
+class GnssPort:
+    """`[gnss]`: the NMEA receiver and what the filter assumes about it."""
+
+    port: str = ""
+    baudrate: int = 115200
+    lever_arm_m: tuple[float, float, float] | None = None
+    """Antenna position in IMU body axes (x right, y forward, z up) [m], tape-measured."""
+    lever_arm_std_m: float = 0.3
+    """1σ of the tape-measured lever arm; without `lever_arm_m` the prior is 0 ± 1 m."""
+    pos_std_m: tuple[float, float, float] = (0.5, 0.5, 1.0)
+    vel_std_m_s: float = 0.05
+    latency_s: float = 0.0
+    """Receiver output latency (epoch → first byte) subtracted in the host time alignment."""
+
+
+@dataclass
+class GnssBench:
+    imu: ImuPort = field(default_factory=ImuPort)
+    gnss: GnssPort = field(default_factory=GnssPort)
+    source: str = "<defaults>"
+
+
+def _triple(key: str, value: Any, source: str) -> tuple[float, float, float]:
+    if not (
+        isinstance(value, list | tuple)
+        and len(value) == 3
+        and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+    ):
+        raise ConfigError(f"{source}: {key} = {value!r}: use three numbers [x, y, z] in metres")
+    return (float(value[0]), float(value[1]), float(value[2]))
+
+
+def load_bench(path: str | Path) -> GnssBench:
+    """Parse `[imu]` and `[gnss]` of a bench TOML (one ConfigError line naming the key if wrong)."""
+    src = str(path)
+    try:
+        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"--config {src}: no such file") from None
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"--config {src}: cannot read it as TOML ({exc})") from None
+    bench = GnssBench(source=src)
+    imu, gnss = data.get("imu", {}), data.get("gnss", {})
+    for name, table in (("imu", imu), ("gnss", gnss)):
+        if not isinstance(table, dict):
+            raise ConfigError(f"{src}: {name} must be a table [{name}]")
+    allowed = {"port", "rate_hz", "baudrate", "rot_format", "rot_units"}
+    for key, value in imu.items():
+        if key not in allowed:
+            raise ConfigError(f"{src}: unknown key [imu] {key}; allowed: {', '.join(sorted(allowed))}")
+        setattr(bench.imu, key, value)
+    allowed = {"port", "baudrate", "lever_arm_m", "lever_arm_std_m", "pos_std_m", "vel_std_m_s", "latency_s"}
+    for key, value in gnss.items():
+        if key not in allowed:
+            raise ConfigError(f"{src}: unknown key [gnss] {key}; allowed: {', '.join(sorted(allowed))}")
+        if key in ("lever_arm_m", "pos_std_m"):
+            value = _triple(f"[gnss] {key}", value, src)
+        setattr(bench.gnss, key, value)
+    from northfinder.codecs import kvh
+
+    i, g = bench.imu, bench.gnss
+    if not isinstance(i.port, str) or not i.port:
+        raise ConfigError(f"{src}: [imu] port is missing; give the IMU's serial port")
+    if not isinstance(g.port, str) or not g.port:
+        raise ConfigError(f"{src}: [gnss] port is missing; give the GNSS receiver's serial port")
+    if i.port == g.port:
+        raise ConfigError(f"{src}: [imu] port and [gnss] port are both {i.port}; give each its own port")
+    if not isinstance(i.rate_hz, int | float) or int(i.rate_hz) not in kvh.RATES_HZ:
+        raise ConfigError(f"{src}: [imu] rate_hz = {i.rate_hz!r}: use one of {kvh.RATES_HZ}")
+    for key, v in (("[gnss] lever_arm_std_m", g.lever_arm_std_m), ("[gnss] vel_std_m_s", g.vel_std_m_s)):
+        if not isinstance(v, int | float) or not v > 0:
+            raise ConfigError(f"{src}: {key} = {v!r}: use a number greater than 0")
+    if not all(v > 0 for v in g.pos_std_m):
+        raise ConfigError(f"{src}: [gnss] pos_std_m = {list(g.pos_std_m)}: use three σ greater than 0")
+    if not isinstance(g.latency_s, int | float) or not 0 <= g.latency_s < 1:
+        raise ConfigError(f"{src}: [gnss] latency_s = {g.latency_s!r}: use 0 … 1 s")
+    return bench
+
+
+# ---------------------------------------------------------------------------------------------
+# Host receive stamps: a transport wrapper (one line per chunk) and the pure alignment from it
+# ---------------------------------------------------------------------------------------------
+class StampedTransport:
+    """A SerialTransport whose every received chunk is stamped with the host's monotonic clock.
+
+    Appends "host_s total_bytes" to `stamp_path` (flushed every `flush_s`, and at close), so the
+    arrival time of any byte of the raw log can be looked up afterwards.
+    """
+
+    def __init__(self, inner: Any, stamp_path: str | Path, flush_s: float = 0.5):
+        self._inner = inner
+        self.url = inner.url
+        self._fh = open(stamp_path, "w", encoding="ascii")  # noqa: SIM115 - closed in close()
+        self._total = 0
+        self._flush_s = flush_s
+        self._last_flush = time.monotonic()
+
+    def write(self, data: bytes) -> None:
+        self._inner.write(data)
+
+    def read_available(self, max_bytes: int = 1 << 16) -> bytes:
+        data = self._inner.read_available(max_bytes)
+        if data:
+            now = time.monotonic()
+            self._total += len(data)
+            self._fh.write(f"{now:.6f} {self._total}\n")
+            if now - self._last_flush >= self._flush_s:
+                self._fh.flush()
+                self._last_flush = now
+        return data
+
+    def close(self) -> None:
+        try:
+            self._inner.close()
+        finally:
+            if not self._fh.closed:
+                self._fh.close()
+
+
+def read_stamps(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(host_s, total_bytes) of a stamp file; a torn last line is ignored."""
+    host, total = [], []
+    if path.exists():
+        for line in path.read_text(encoding="ascii", errors="replace").splitlines():
+            parts = line.split()
+            if len(parts) == 2:
+                try:
+                    h, b = float(parts[0]), int(parts[1])
+                except ValueError:
+                    continue
+                host.append(h)
+                total.append(b)
+    return np.asarray(host, dtype=float), np.asarray(total, dtype=np.int64)
+
+
+def _chunks(raw: bytes, total: np.ndarray) -> list[bytes]:
+    ends = np.minimum(total, len(raw))
+    starts = np.concatenate([[0], ends[:-1]])
+    return [raw[a:b] for a, b in zip(starts.tolist(), ends.tolist(), strict=True)]
+
+
+def host_offsets(
+    imu_raw: bytes,
+    imu_stamps,
+    nmea_raw: bytes,
+    gnss_stamps,
+    rate_hz: float,
+    utc_ref_s: float,
+    time_scale: float = 1.0,
+    imu_last_index: int | None = None,
+    gnss_fixes: int | None = None,
+) -> dict[str, Any]:
+    """IMU index 0's start and GNSS time zero on one clock, from host receive stamps (lower envelope).
+
+    A sample with index i ends at off_imu + (i+1)/rate and arrives later; a fix with UTC u arrives
+    after off_gnss + u. Host times are scaled by `time_scale` (a simulator running K× faster) so
+    that the result is in device seconds. Returns t0_s = off_imu − off_gnss: the start of sample 0
+    in GNSS time (UTC − utc_ref_s), and the spread of the arrival delays as a quality figure.
+    """
+    h_i, b_i = imu_stamps
+    h_g, b_g = gnss_stamps
+    if len(h_i) == 0 or len(h_g) == 0:
+        raise InputError("host time alignment needs the receive stamps imu.rx and gnss.rx; they are empty")
+    dec = KvhDecoder()
+    imu_d = []
+    for h, chunk in zip(h_i, _chunks(imu_raw, b_i), strict=True):
+        out = dec.feed(chunk)
+        if len(out):
+            last = int(out.sample_index[-1])
+            if imu_last_index is not None and last > imu_last_index:
+                break
+            imu_d.append(h * time_scale - (last + 1) / rate_hz)
+    ndec = NmeaDecoder()
+    gnss_d = []
+    n_fix = 0
+    for h, chunk in zip(h_g, _chunks(nmea_raw, b_g), strict=True):
+        for fix in ndec.feed(chunk):
+            n_fix += 1
+            if gnss_fixes is not None and n_fix > gnss_fixes:
+                break
+            gnss_d.append(h * time_scale - (fix.time_s - utc_ref_s))
+    if not imu_d or not gnss_d:
+        raise InputError("host time alignment: no IMU frame or no GNSS fix in the receive stamps")
+    off_i, off_g = float(np.min(imu_d)), float(np.min(gnss_d))
+    return {
+        "t0_s": off_i - off_g,
+        "imu_delay_p50_s": float(np.median(imu_d) - off_i),
+        "gnss_delay_p50_s": float(np.median(gnss_d) - off_g),
+        "imu_chunks": len(imu_d),
+        "gnss_fixes": len(gnss_d),
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# The simulator's truth log (JSON lines, docs/simulator.md)
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class TruthLog:
+    """What northfinder needs from firmware-sim's truth log: k0, the site, truth against time."""
+
+    header: dict[str, Any]
+    imu_k0: int | None
+    imu_rate_hz: float | None
+    t_s: np.ndarray
+    heading_deg: np.ndarray  # unwrapped
+    pitch_deg: np.ndarray
+    roll_deg: np.ndarray
+    pos_enu_m: np.ndarray
+    lever_arm_m: list[float] | None
+    origin: tuple[float, float, float] | None
+
+    def at(self, t_s: float | np.ndarray, what: str) -> np.ndarray:
+        """Linear interpolation of a truth column at device time(s)."""
+        col = getattr(self, what)
+        t = np.asarray(t_s, dtype=float)
+        if col.ndim == 1:
+            return np.interp(t, self.t_s, col)
+        return np.stack([np.interp(t, self.t_s, col[:, j]) for j in range(col.shape[1])], axis=-1)
+
+    def heading_at(self, t_s) -> np.ndarray:
+        return np.mod(self.at(t_s, "heading_deg"), 360.0)
+
+
+def _first(d: dict[str, Any], *keys: str) -> Any:
+    for k in keys:
+        if k in d and d[k] is not None:
+            return d[k]
+    return None
+
+
+def read_truth_log(path: Path) -> TruthLog:
+    """Parse the truth log; InputError naming the file if it has no samples or no IMU connect event."""
+    header: dict[str, Any] = {}
+    k0 = rate = None
+    rows: list[tuple] = []
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise InputError(f"{path}: the simulator's truth log is missing") from None
+    for line in lines:
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if not isinstance(rec, dict):
+            continue
+        kind = str(_first(rec, "event", "type", "kind") or "")
+        if not header and ("config" in rec or kind == "header"):
+            header = rec
+            continue
+        if "k0" in rec and "imu" in (kind + str(rec.get("device", ""))).lower() and k0 is None:
+            k0 = int(rec["k0"])
+            rate = _first(rec, "rate_hz", "imu_rate_hz")
+            continue
+        t = _first(rec, "t_device_s", "t_s")
+        h = _first(rec, "heading_deg")
+        if t is None or h is None:
+            continue
+        pos = _first(rec, "pos_enu_m", "imu_pos_enu_m", "position_enu_m")
+        rows.append(
+            (
+                float(t),
+                float(h),
+                float(_first(rec, "pitch_deg") or 0.0),
+                float(_first(rec, "roll_deg") or 0.0),
+                pos if pos is not None else (np.nan,) * 3,
+            )
+        )
+    if not rows:
+        raise InputError(f"{path}: the truth log has no truth samples")
+    rows.sort(key=lambda r: r[0])
+    t = np.array([r[0] for r in rows])
+    cfg = header.get("config", header) if isinstance(header.get("config", header), dict) else {}
+    la = _first(cfg, "gnss_lever_arm_m", "lever_arm_m")
+    lat, lon, h0 = _first(cfg, "latitude_deg"), _first(cfg, "longitude_deg"), _first(cfg, "height_m")
+    origin = (
+        (float(lat), float(lon if lon is not None else 0.0), float(h0 or 0.0)) if lat is not None else None
+    )
+    if rate is None:
+        rate = _first(cfg, "imu_rate_hz")
+    return TruthLog(
+        header=header,
+        imu_k0=k0,
+        imu_rate_hz=float(rate) if rate is not None else None,
+        t_s=t,
+        heading_deg=np.rad2deg(np.unwrap(np.deg2rad([r[1] for r in rows]))),
+        pitch_deg=np.array([r[2] for r in rows]),
+        roll_deg=np.array([r[3] for r in rows]),
+        pos_enu_m=np.array([r[4] for r in rows], dtype=float).reshape(-1, 3),
+        lever_arm_m=[float(v) for v in la] if la is not None else None,
+        origin=origin,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Result assembly: the one function live and replay call
+# ---------------------------------------------------------------------------------------------
+def gnss_series(fixes: list[GnssFix], utc_ref_s: float, pos_std_m, vel_std_m_s: float) -> GnssSeries:
+    """Decoded fixes → the filter's GnssSeries: time since `utc_ref_s`, ENU about the first fix;
+    Up velocity (not in NMEA) and lost velocities get a σ that says "not measured"."""
+    arr = fixes_to_arrays(fixes)
+    vel = arr.vel_enu_m_s.copy()
+    vel_std = np.tile([vel_std_m_s, vel_std_m_s, VEL_UP_STD_M_S], (len(arr), 1))
+    lost = ~np.isfinite(vel).all(axis=1)
+    vel[lost] = 0.0
+    vel_std[lost] = VEL_UNKNOWN_STD_M_S
+    ref = arr.ref
+    return GnssSeries(
+        arr.time_s - utc_ref_s,
+        arr.pos_enu_m,
+        vel,
+        np.tile(np.asarray(pos_std_m, float), (len(arr), 1)),
+        vel_std,
+        (ref.lat0_deg, ref.lon0_deg, ref.h0_m),
+    )
+
+
+def _method_dict(res: GnssAlignResult, truth_heading_deg: float | None) -> dict[str, Any]:
+    out = {
+        "heading_deg": res.heading_deg,
+        "heading_std_deg": res.heading_std_deg,
+        "converged_after_s": res.converged_after_s,
+        "lever_arm_m": res.lever_arm_m.tolist(),
+    }
+    if truth_heading_deg is not None:
+        out["error_deg"] = float(wrap_deg_180(res.heading_deg - truth_heading_deg))
+    return out
+
+
+def _time_below(t: np.ndarray, err: np.ndarray, thr: float) -> float | None:
+    """First time after which |err| stays below thr to the end (None: not reached)."""
+    bad = np.nonzero(np.abs(err) >= thr)[0]
+    if len(t) == 0 or (len(bad) and bad[-1] == len(err) - 1):
+        return None
+    return float(t[bad[-1] + 1] if len(bad) else t[0])
+
+
+def compute_gnss_result(
+    imu_block: Any,
+    fixes: list[GnssFix],
+    start: dict[str, Any],
+    end: dict[str, Any],
+    truth: TruthLog | None,
+    t0_index0_s: float,
+    alignment: dict[str, Any],
+    *,
+    complete: bool = True,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Both filters on the window's samples and fixes → (result dict, time histories for the report).
+
+    `t0_index0_s`: start of IMU sample index 0 in GNSS time (time_alignment). `start`/`end` are the
+    run's events (filter settings, stream counters).
+    """
+    flt = start["filter"]
+    rate = float(start["imu"]["rate_hz"])
+    if len(imu_block) == 0:
+        raise InputError("no IMU samples were read; nothing to align")
+    if len(fixes) < 2:
+        raise InputError(
+            f"only {len(fixes)} GNSS fixes were read; check the receiver has a fix (antenna, sky view)"
+        )
+    idx = imu_block.sample_index
+    imu = ImuSeries(rate, imu_block.gyro_rad_s, imu_block.accel_g, idx, t0_index0_s + float(idx[0]) / rate)
+    gnss = gnss_series(fixes, float(end["utc_ref_s"]), flt["pos_std_m"], flt["vel_std_m_s"])
+    t_start_imu = imu.t0_s
+    t_end_imu = t0_index0_s + (float(idx[-1]) + 1.0) / rate
+    initial = flt.get("initial_heading_deg")
+    truth_start = truth_end = None
+    if truth is not None:
+        truth_start = float(truth.heading_at(t_start_imu))
+    if flt.get("heading_error_deg") is not None:
+        if truth_start is None:
+            raise InputError(
+                "--heading-error needs the simulator's truth log (the truth heading at the start)"
+            )
+        initial = (truth_start + float(flt["heading_error_deg"])) % 360.0
+    heading_std = flt.get("heading_std_deg")
+    cfg = GnssAlignConfig(
+        heading_std_deg=heading_std,
+        lever_arm_b_m=tuple(flt["lever_arm_prior_m"]),
+        lever_arm_std_m=float(flt["lever_arm_std_m"]),
+    )
+    psi0 = float(initial if initial is not None else 0.0)
+    main = align_gnss(imu, gnss, psi0, cfg)
+    small_cfg = GnssAlignConfig(
+        **{**cfg.__dict__, "heading_std_deg": heading_std or SMALL_ANGLE_HEADING_STD_DEG}
+    )
+    small = align_gnss_small_angle(imu, gnss, psi0, small_cfg)
+    h = main.history
+    t_last = float(h.t_s[-1])
+    result: dict[str, Any] = {
+        "schema": SCHEMA,
+        "kind": KIND,
+        "complete": bool(complete),
+        "method": main.method,
+        "heading_deg": main.heading_deg,
+        "heading_std_deg": main.heading_std_deg,
+        "pitch_deg": main.pitch_deg,
+        "roll_deg": main.roll_deg,
+        "lever_arm_m": main.lever_arm_m.tolist(),
+        "lever_arm_std_m": main.lever_arm_std_m.tolist(),
+        "gyro_bias_dph": main.gyro_bias_dph.tolist(),
+        "accel_bias_ug": main.accel_bias_ug.tolist(),
+        "converged_after_s": main.converged_after_s,
+        "duration_device_s": (float(idx[-1]) - float(idx[0]) + 1.0) / rate,
+        "filter_start_s": main.start_s - t_start_imu,
+        "filter_end_s": t_last - t_start_imu,
+        "initial_heading_deg": psi0,
+        "initial_heading_std_deg": heading_std,
+        "lever_arm_prior_m": list(flt["lever_arm_prior_m"]),
+        "lever_arm_prior_std_m": float(flt["lever_arm_std_m"]),
+        "position": dict(
+            zip(
+                ("lat_deg", "lon_deg", "height_m"),
+                (float(v) for v in LocalEnu(*gnss.origin).from_enu(main.pos_enu_m)),
+                strict=True,
+            )
+        ),
+        "time_alignment": alignment,
+        "imu": {**end["imu"], "rate_hz": rate, "window_s": [t_start_imu, t_end_imu]},
+        "gnss": {**end["gnss"], "updates": len(h.t_s), "origin": list(gnss.origin)},
+        "methods": {main.method: _method_dict(main, None), "small_angle": _method_dict(small, None)},
+    }
+    hist: dict[str, Any] = {
+        "t_s": h.t_s - t_start_imu,
+        "heading_deg": h.heading_deg,
+        "heading_std_deg": h.heading_std_deg,
+        "lever_arm_m": h.lever_arm_m,
+        "small_t_s": small.history.t_s - t_start_imu,
+        "small_heading_deg": small.history.heading_deg,
+    }
+    if truth is not None:
+        truth_end = float(truth.heading_at(t_last))
+        result["truth"] = {
+            "heading_deg": truth_end,
+            "heading_at_start_deg": truth_start,
+            "pitch_deg": float(truth.at(t_last, "pitch_deg")),
+            "roll_deg": float(truth.at(t_last, "roll_deg")),
+            "lever_arm_m": truth.lever_arm_m,
+            "t_device_s": t_last,
+        }
+        result["error_deg"] = float(wrap_deg_180(main.heading_deg - truth_end))
+        result["methods"][main.method]["error_deg"] = result["error_deg"]
+        result["methods"]["small_angle"]["error_deg"] = float(wrap_deg_180(small.heading_deg - truth_end))
+        err = np.asarray(wrap_deg_180(h.heading_deg - truth.heading_at(h.t_s)), dtype=float)
+        s_err = np.asarray(
+            wrap_deg_180(small.history.heading_deg - truth.heading_at(small.history.t_s)), dtype=float
+        )
+        hist["error_deg"], hist["small_error_deg"] = err, s_err
+        for name, t_arr, e in ((main.method, h.t_s, err), ("small_angle", small.history.t_s, s_err)):
+            m = result["methods"][name]
+            for thr, key in ((1.0, "time_below_1deg_s"), (0.5, "time_below_0p5deg_s")):
+                tb = _time_below(t_arr, e, thr)
+                m[key] = None if tb is None else tb - t_start_imu
+        if truth.origin is not None and np.isfinite(truth.pos_enu_m).all():
+            site = LocalEnu(*truth.origin)
+            lat, lon, hh = site.from_enu(truth.at(h.t_s, "pos_enu_m"))
+            true_enu = LocalEnu(*gnss.origin).to_enu(lat, lon, hh).reshape(-1, 3)
+            perr = h.pos_enu_m - true_enu
+            hist["position_error_m"] = np.linalg.norm(perr, axis=1)
+            result["position_error_m"] = float(hist["position_error_m"][-1])
+            result["position_error_horizontal_m"] = float(np.hypot(perr[-1, 0], perr[-1, 1]))
+            if main.converged_after_s is not None:
+                after = h.t_s - main.start_s >= main.converged_after_s
+                result["position_error_max_after_convergence_m"] = float(
+                    hist["position_error_m"][after].max()
+                )
+        if truth.lever_arm_m is not None:
+            result["lever_arm_error_m"] = float(
+                np.linalg.norm(main.lever_arm_m - np.asarray(truth.lever_arm_m))
+            )
+    return result, hist
+
+
+# ---------------------------------------------------------------------------------------------
+# Replay
+# ---------------------------------------------------------------------------------------------
+def window_from_logs(rd: RunDir, start: dict[str, Any], end: dict[str, Any]) -> tuple[Any, list[GnssFix]]:
+    """The IMU samples and the fixes of the window, decoded from imu.raw and gnss.nmea alone."""
+    from northfinder.drivers.gnss import decode_nmea_log
+    from northfinder.drivers.imu import decode_imu_stream
+
+    imu_cfg = start["imu"]
+    raw = rd.file(IMU_RAW).read_bytes() if rd.file(IMU_RAW).exists() else b""
+    block, _ = decode_imu_stream(raw, imu_cfg["rate_hz"], imu_cfg["rot_format"], imu_cfg["rot_units"])
+    block = _select(block, int(end["imu"]["first_index"]), int(end["imu"]["last_index"]))
+    nmea = rd.file(GNSS_NMEA).read_bytes() if rd.file(GNSS_NMEA).exists() else b""
+    fixes, _ = decode_nmea_log(nmea)
+    return block, fixes[: int(end["gnss"]["fixes"])]
+
+
+def _select(block: Any, first_index: int, last_index: int) -> Any:
+    """The samples of an ImuBlock with first_index ≤ index ≤ last_index (what the live run read)."""
+    from northfinder.drivers.imu import ImuBlock
+
+    sel = (block.sample_index >= first_index) & (block.sample_index <= last_index)
+    idx = block.sample_index[sel]
+    lost = int(idx[-1] - idx[0] + 1 - len(idx)) if len(idx) else 0
+    return ImuBlock(
+        idx,
+        block.gyro_rad_s[sel],
+        block.accel_g[sel],
+        block.status[sel],
+        block.temperature_c[sel],
+        lost,
+        block.rate_hz,
+    )
+
+
+def time_alignment(
+    rd: RunDir, start: dict[str, Any], end: dict[str, Any], truth: TruthLog | None
+) -> tuple[float, dict]:
+    """Start of IMU sample index 0 in GNSS time: exact from the truth log's k0 on the simulator,
+    else from the host receive stamps; the host estimate is also reported on the simulator."""
+    rate = float(start["imu"]["rate_hz"])
+    info: dict[str, Any] = {}
+    host = None
+    try:
+        host = host_offsets(
+            rd.file(IMU_RAW).read_bytes(),
+            read_stamps(rd.file(IMU_RX)),
+            rd.file(GNSS_NMEA).read_bytes(),
+            read_stamps(rd.file(GNSS_RX)),
+            rate,
+            float(end["utc_ref_s"]),
+            float(start.get("time_scale", 1.0)),
+            int(end["imu"]["last_index"]),
+            int(end["gnss"]["fixes"]),
+        )
+    except (InputError, FileNotFoundError):
+        host = None
+    if truth is not None and truth.imu_k0 is not None:
+        t0 = truth.imu_k0 / rate + float(start.get("k0_offset_samples", 0)) / rate
+        info = {"method": "truth-log", "imu_k0": truth.imu_k0, "t0_s": t0}
+        if host is not None:
+            info["host_estimate"] = host
+            info["host_minus_truth_s"] = host["t0_s"] - t0
+        return t0, info
+    if host is None:
+        raise InputError(f"{rd.path}: no way to align IMU and GNSS time (no truth log k0, no receive stamps)")
+    latency = float(start.get("gnss_latency_s", 0.0))
+    t0 = host["t0_s"] + latency
+    return t0, {"method": "host", "t0_s": t0, "gnss_latency_s": latency, **host}
+
+
+def load_truth(rd: RunDir, start: dict[str, Any]) -> TruthLog | None:
+    if not start.get("simulate"):
+        return None
+    return read_truth_log(rd.file(TRUTH_LOG))
+
+
+def result_from_run(
+    rd: RunDir,
+    imu_block: Any,
+    fixes: list[GnssFix],
+    start: dict[str, Any],
+    end: dict[str, Any],
+    complete: bool,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The result of a run from its window's data (live: the drivers' arrays; replay: decoded logs)."""
+    truth = load_truth(rd, start)
+    t0, info = time_alignment(rd, start, end, truth)
+    return compute_gnss_result(imu_block, fixes, start, end, truth, t0, info, complete=complete)
+
+
+def replay_gnss_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
+    """Recompute an `align --mode gnss` run's result from imu.raw, gnss.nmea and the events alone.
+
+    Returns (result, complete); bit-identical to the live result.json for the same run.
+    """
+    rd = RunDir(run_dir, create=False)
+    events = rd.events()
+    start = next((e for e in events if e.get("event") == "start"), None)
+    if start is None or start.get("kind") != KIND:
+        raise InputError(
+            f"{rd.path}: not an `align --mode gnss` run ({EVENTS} has no start event of kind {KIND})"
+        )
+    end = next((e for e in events if e.get("event") == "end"), None)
+    if end is None:
+        raise InputError(
+            f"{rd.path}: the run has no end event (it was killed before saving its window); "
+            "nothing to recompute"
+        )
+    complete = bool(end.get("complete"))
+    block, fixes = window_from_logs(rd, start, end)
+    result, _ = result_from_run(rd, block, fixes, start, end, complete)
+    return json.loads(json.dumps(_plain(result))), complete
+
+
+def _plain(obj: Any) -> Any:
+    from northfinder.rundir import _jsonable
+
+    return _jsonable(obj)
+
+
+# ---------------------------------------------------------------------------------------------
+# The report
+# ---------------------------------------------------------------------------------------------
+def write_gnss_report(result: dict[str, Any], hist: dict[str, Any], path: str | Path) -> Path:
+    """report.png: heading error (or heading) and σ against time, position error, lever arm."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(9, 10), sharex=True)
+    t = np.asarray(hist["t_s"])
+    ax = axes[0]
+    sig = np.asarray(hist["heading_std_deg"])
+    if "error_deg" in hist:
+        ax.plot(t, hist["error_deg"], label=f"{result['method']} error")
+        ax.plot(hist["small_t_s"], hist["small_error_deg"], label="small-angle error", alpha=0.7)
+        ax.fill_between(t, -3 * sig, 3 * sig, color="grey", alpha=0.3, label="±3σ (sin/cos)")
+        ax.set_ylabel("heading error [deg]")
+        ax.set_yscale("symlog", linthresh=1.0)
+    else:
+        ax.plot(t, hist["heading_deg"], label="heading")
+        ax.plot(t, np.asarray(hist["heading_deg"]) + 3 * sig, "k:", lw=0.8, label="±3σ")
+        ax.plot(t, np.asarray(hist["heading_deg"]) - 3 * sig, "k:", lw=0.8)
+        ax.set_ylabel("heading [deg]")
+    ax.set_title(f"align --mode gnss: {result['heading_deg']:.3f}° ± {result['heading_std_deg']:.3f}° (1σ)")
+    ax.legend(loc="upper right")
+    ax.grid(True, alpha=0.3)
+    ax = axes[1]
+    if "position_error_m" in hist:
+        ax.plot(t, hist["position_error_m"])
+        ax.set_ylabel("IMU position error [m]")
+        ax.set_yscale("log")
+    else:
+        ax.plot(t, sig)
+        ax.set_ylabel("heading 1σ [deg]")
+        ax.set_yscale("log")
+    ax.grid(True, alpha=0.3)
+    ax = axes[2]
+    la = np.asarray(hist["lever_arm_m"])
+    truth_la = (result.get("truth") or {}).get("lever_arm_m")
+    for j, name in enumerate("xyz"):
+        (line,) = ax.plot(t, la[:, j], label=f"lever arm {name}")
+        if truth_la is not None:
+            ax.axhline(truth_la[j], color=line.get_color(), ls="--", lw=0.8)
+    ax.set_ylabel("lever arm [m] (dashed: truth)")
+    ax.set_xlabel("device time since the first IMU sample [s]")
+    ax.legend(loc="upper right")
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    out = Path(path)
+    fig.savefig(out, dpi=80)
+    plt.close(fig)
+    return out
+
+
+def save_result(
+    rd: RunDir, result: dict[str, Any], hist: dict[str, Any], json_path: str | None, report: bool = True
+) -> None:
+    rd.write_json(RESULT, result)
+    if json_path:
+        RunDir(Path(json_path).parent).write_json(Path(json_path).name, result)
+    if report:
+        write_gnss_report(result, hist, rd.report_path)
+
+
+def now_utc() -> str:
+    return datetime.now(UTC).isoformat()
+
+
+__all__ = [
+    "CONFIG",
+    "GNSS_NMEA",
+    "KIND",
+    "compute_gnss_result",
+    "load_bench",
+    "replay_gnss_run",
+    "result_from_run",
+    "time_alignment",
+]

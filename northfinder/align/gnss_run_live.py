@@ -1,0 +1,378 @@
+"""Live acquisition for `northfinder align --mode gnss`: the IMU and the GNSS read together.
+
+What: open both ports with their raw logs in the run directory (imu.raw, gnss.nmea) and their
+host receive stamps (imu.rx, gnss.rx), read `duration_s` of IMU device time (samples + lost
+samples over the rate) with a rich progress bar, take every fix decoded by then, write the
+window's sample range and fix count to events.jsonl, and compute the result through the same
+function replay uses (northfinder.align.gnss_run.result_from_run). Ctrl-C/SIGTERM: the data read so
+far is kept and aligned if it is long enough; the CLI then exits 130 (143 for SIGTERM).
+
+On the simulator (`VehicleSim`, firmware-sim `--scenario vehicle` as a subprocess) the IMU is not
+put into configuration mode: the KVH sends nothing there and its sequence counter does not count
+the pause, so the truth log's k0 would no longer map indices to device time. Its rate and format
+are the ones firmware-sim is started with.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import signal
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from northfinder.align import gnss_run as gr
+from northfinder.errors import DeviceError, InputError, RunAborted
+from northfinder.rundir import CONFIG, RunDir
+from northfinder.sequencer import StopFlag
+from northfinder.simulate import SimulatorProcess
+
+SIM_IMU_RATE_HZ = 250
+SIM_DEFAULT_TIME_SCALE = 20.0
+"""Device time runs 20× the wall clock: a 300 s drive in 15 s of reading (the simulator computes the
+vehicle's truth at ~25× real time on one core of this 2-core host)."""
+SIM_LEVER_ARM_M = (0.5, 1.5, 1.2)
+
+
+@dataclass
+class VehicleSim:
+    """firmware-sim's vehicle scenario: the knobs passed on, the command line built from them."""
+
+    lever_arm_m: tuple[float, float, float] = SIM_LEVER_ARM_M
+    grade: str = "kvh1760"
+    seed: int = 1
+    time_scale: float = SIM_DEFAULT_TIME_SCALE
+    imu_rate_hz: int = SIM_IMU_RATE_HZ
+    latitude_deg: float | None = None
+    heading_deg: float | None = None
+    faults: Sequence[str] = field(default_factory=tuple)
+    truth_log: str | None = None
+
+    def argv(self) -> list[str]:
+        out = [
+            sys.executable,
+            "-m",
+            "firmware_sim",
+            "--scenario",
+            "vehicle",
+            "--lever-arm",
+            ",".join(repr(float(v)) for v in self.lever_arm_m),
+            "--imu-rate",
+            str(int(self.imu_rate_hz)),
+            "--grade",
+            self.grade,
+            "--seed",
+            str(int(self.seed)),
+            "--time-scale",
+            repr(float(self.time_scale)),
+        ]
+        if self.latitude_deg is not None:
+            out += ["--latitude", repr(float(self.latitude_deg))]
+        if self.heading_deg is not None:
+            out += ["--heading", repr(float(self.heading_deg))]
+        if self.truth_log:
+            out += ["--truth-log", str(self.truth_log)]
+        for fault in self.faults:
+            out += ["--fault", fault]
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "scenario": "vehicle",
+            "lever_arm_m": list(self.lever_arm_m),
+            "grade": self.grade,
+            "seed": self.seed,
+            "time_scale": self.time_scale,
+            "imu_rate_hz": self.imu_rate_hz,
+            "latitude_deg": self.latitude_deg,
+            "heading_deg": self.heading_deg,
+            "faults": list(self.faults),
+        }
+
+
+class VehicleSimProcess(SimulatorProcess):
+    """SimulatorProcess for the vehicle scenario, whose endpoints are {"imu", "gnss", "gnss_start_utc"}
+    (the base class expects a turntable)."""
+
+    def start(self) -> dict[str, Any]:
+        import subprocess
+
+        try:
+            self.proc = subprocess.Popen(
+                self.settings.argv(),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+            )
+        except OSError as exc:
+            raise DeviceError("firmware-sim", None, f"cannot start it ({exc.strerror})") from None
+        line = self._read_line(self.startup_timeout_s)
+        try:
+            endpoints = json.loads(line)
+            if not isinstance(endpoints, dict) or "imu" not in endpoints or "gnss" not in endpoints:
+                raise ValueError
+        except ValueError:
+            self.stop()
+            raise DeviceError(
+                "firmware-sim", None, f"printed {line[:120]!r} instead of the vehicle scenario's endpoints"
+            ) from None
+        self.endpoints = endpoints
+        return endpoints
+
+
+def utc_seconds(iso: str) -> float:
+    """'2026-11-22T12:00:00Z' → POSIX seconds."""
+    return datetime.fromisoformat(iso.replace("Z", "+00:00")).astimezone(UTC).timestamp()
+
+
+@contextlib.contextmanager
+def _opened(device: str, port: str, factory: Any) -> Iterator[Any]:
+    """Enter a driver; an OS/serial failure becomes one DeviceError line naming the port."""
+    try:
+        obj = factory()
+    except OSError as exc:  # serial.SerialException is an OSError
+        raise DeviceError(device, port, f"cannot open it ({exc}); check the port") from None
+    try:
+        yield obj
+    finally:
+        obj.close()
+
+
+def _stamped(device: str, port: str, baudrate: int, raw: Path, stamps: Path) -> gr.StampedTransport:
+    from northfinder.transport import SerialTransport
+
+    return gr.StampedTransport(
+        SerialTransport(port, device=device, baudrate=baudrate, timeout_s=0.05, raw_log=raw), stamps
+    )
+
+
+class _View:
+    """rich progress: device time of the window, fixes, satellites, speed, stream counters."""
+
+    def __init__(self, duration_s: float, enabled: bool):
+        from rich.console import Console
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.progress = Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TextColumn("{task.fields[info]}"),
+            TimeElapsedColumn(),
+            console=Console(stderr=True),
+            disable=not enabled,
+        )
+        self.task = self.progress.add_task("device time", total=duration_s, info="waiting for data")
+
+    def update(self, done_s: float, total_s: float, fix: Any, gnss_stats: Any, imu_stats: Any) -> None:
+        speed = f"{fix.speed_m_s:5.1f} m/s" if fix is not None and fix.speed_m_s is not None else "  —  "
+        sats = fix.num_sv if fix is not None else 0
+        info = (
+            f"{done_s:6.1f}/{total_s:g} s  fixes {gnss_stats.fixes} ({sats} SV, {speed})  "
+            f"NMEA bad {gnss_stats.bad_checksum}+{gnss_stats.truncated} no-fix {gnss_stats.no_fix}  "
+            f"IMU lost {imu_stats.lost_samples} bad CRC {imu_stats.bad_crc}"
+        )
+        self.progress.update(self.task, completed=done_s, info=info)
+
+    def __enter__(self) -> _View:
+        self.progress.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.progress.stop()
+
+
+def acquire_and_align(
+    rd: RunDir,
+    *,
+    imu_port: str,
+    gnss_port: str,
+    imu_rate_hz: float,
+    rot_format: str,
+    rot_units: str,
+    duration_s: float,
+    filter_settings: dict[str, Any],
+    imu_baudrate: int = 921600,
+    gnss_baudrate: int = 115200,
+    configure_imu: bool = False,
+    simulate: dict[str, Any] | None = None,
+    gnss_start_utc: str | None = None,
+    time_scale: float = 1.0,
+    gnss_latency_s: float = 0.0,
+    json_path: str | None = None,
+    report: bool = True,
+    progress: bool = True,
+    config_extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Read both devices for `duration_s` device seconds, save the run directory, return the result."""
+    from northfinder.drivers.gnss import Gnss
+    from northfinder.drivers.imu import Imu
+
+    rd.write_json(CONFIG, {"kind": gr.KIND, "simulate": simulate, "argv": sys.argv, **(config_extra or {})})
+    stop = StopFlag()
+    blocks: list[Any] = []
+    fixes: list[Any] = []
+    with stop.installed(), contextlib.ExitStack() as stack:
+        imu = stack.enter_context(
+            _opened(
+                "imu",
+                imu_port,
+                lambda: Imu(
+                    imu_port,
+                    rate_hz=imu_rate_hz,
+                    rot_format=rot_format,
+                    rot_units=rot_units,
+                    timeout_s=5.0,
+                    transport=_stamped("imu", imu_port, imu_baudrate, rd.imu_raw_path, rd.file(gr.IMU_RX)),
+                ),
+            )
+        )
+        if configure_imu:
+            imu.configure()  # read the rate and gyro format back: the decoder must know them
+        gnss = stack.enter_context(
+            _opened(
+                "gnss",
+                gnss_port,
+                lambda: Gnss(
+                    gnss_port,
+                    timeout_s=5.0,
+                    transport=_stamped(
+                        "gnss", gnss_port, gnss_baudrate, rd.file(gr.GNSS_NMEA), rd.file(gr.GNSS_RX)
+                    ),
+                ),
+            )
+        )
+        start = {
+            "event": "start",
+            "kind": gr.KIND,
+            "utc": gr.now_utc(),
+            "duration_s": duration_s,
+            "imu": {
+                "port": imu_port,
+                "rate_hz": imu.rate_hz,
+                "rot_format": imu.rot_format,
+                "rot_units": imu.rot_units,
+            },
+            "gnss": {"port": gnss_port},
+            "filter": filter_settings,
+            "simulate": simulate,
+            "time_scale": time_scale,
+            "gnss_start_utc": gnss_start_utc,
+            "gnss_latency_s": gnss_latency_s,
+        }
+        rd.log_event(start)
+        rate = imu.rate_hz
+        n_total = int(round(duration_s * rate))
+        chunk = max(1, int(rate // 10))
+        first = last = None
+        last_fix = None
+        with _View(duration_s, progress) as view:
+            while not stop:
+                need = n_total if first is None else n_total - (last - first + 1)
+                if need <= 0:
+                    break
+                block = imu.read(min(chunk, need), timeout_s=5.0 + chunk / rate)
+                if first is None:
+                    first = int(block.sample_index[0])
+                over = int(block.sample_index[-1]) - first + 1 - n_total
+                if over > 0:  # a gap at the end overshot the window: keep its samples inside it
+                    keep = block.sample_index <= first + n_total - 1
+                    block = gr._select(
+                        block,
+                        int(block.sample_index[0]),
+                        int(block.sample_index[keep][-1]) if keep.any() else -1,
+                    )
+                if len(block):
+                    blocks.append(block)
+                    last = int(block.sample_index[-1])
+                pending = gnss.pending
+                if pending:
+                    fixes.extend(gnss.read_fixes(pending, timeout_s=1.0))
+                    last_fix = fixes[-1]
+                view.update(
+                    (last - first + 1) / rate if last is not None else 0.0,
+                    duration_s,
+                    last_fix,
+                    gnss.stats,
+                    imu.stats,
+                )
+            if not stop and gnss_start_utc is not None and blocks:
+                # the fixes up to the window's end (device time = NMEA UTC − gnss_start_utc) are on their way
+                t_end = utc_seconds(gnss_start_utc) + (last + 1) / rate + 0.5
+                with contextlib.suppress(DeviceError):
+                    fixes.extend(gnss.fixes_until(t_end, timeout_s=2.0 + 1.0 / max(time_scale, 1e-3)))
+            pending = gnss.pending
+            if pending:
+                fixes.extend(gnss.read_fixes(pending, timeout_s=1.0))
+            imu_stats, gnss_stats = imu.stats, gnss.stats
+    # ports closed: the raw logs and stamps are complete on disk
+    complete = not stop
+    if not blocks:
+        rd.log_event(
+            {"event": "end", "complete": False, "imu": {"samples": 0}, "gnss": {"fixes": len(fixes)}}
+        )
+        raise _abort_or(stop, rd, "no IMU samples were read")
+    from northfinder.drivers.imu import ImuBlock
+
+    block = ImuBlock(
+        np.concatenate([b.sample_index for b in blocks]),
+        np.concatenate([b.gyro_rad_s for b in blocks]),
+        np.concatenate([b.accel_g for b in blocks]),
+        np.concatenate([b.status for b in blocks]),
+        np.concatenate([b.temperature_c for b in blocks]),
+        0,
+        rate,
+    )
+    lost = int(block.sample_index[-1] - block.sample_index[0] + 1 - len(block))
+    utc_ref = (
+        utc_seconds(gnss_start_utc) if gnss_start_utc else (math.floor(fixes[0].time_s) if fixes else 0.0)
+    )
+    end = {
+        "event": "end",
+        "complete": complete,
+        "utc": gr.now_utc(),
+        "utc_ref_s": utc_ref,
+        "imu": {
+            "first_index": int(block.sample_index[0]),
+            "last_index": int(block.sample_index[-1]),
+            "samples": len(block),
+            "lost_samples": lost,
+            "stats": imu_stats.as_dict(),
+        },
+        "gnss": {"fixes": len(fixes), "stats": gnss_stats.as_dict()},
+    }
+    rd.log_event(end)
+    try:
+        result, hist = gr.result_from_run(rd, block, fixes, start, end, complete)
+    except InputError as exc:
+        if complete:
+            raise
+        raise _abort_or(stop, rd, str(exc)) from None
+    gr.save_result(rd, result, hist, json_path, report)
+    if not complete:
+        raise _abort_or(stop, rd, f"the result of the {result['duration_device_s']:.1f} s read is saved")
+    return result
+
+
+def _abort_or(stop: StopFlag, rd: RunDir, what: str) -> Exception:
+    if not stop:
+        return InputError(what)
+    err = RunAborted(
+        f"run stopped by {signal.Signals(stop.signum).name}; {what}; the data is saved in "
+        f"{rd.path} (northfinder replay {rd.path})"
+    )
+    if stop.signum == signal.SIGTERM:
+        err.exit_code = 143
+    return err
+
+
+def wall_clock() -> float:
+    return time.monotonic()

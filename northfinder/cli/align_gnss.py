@@ -1,0 +1,276 @@
+"""`northfinder align --mode gnss`: GNSS-aided alignment of a moving vehicle from any initial heading.
+
+`--config bench.toml` reads the IMU (`[imu]`) and the NMEA receiver (`[gnss]`) of a real vehicle;
+`--simulate` starts firmware-sim's vehicle scenario (IMU pty + GNSS pty, the default 300 s drive)
+and reports the error against its truth log. The paper's δsin/δcos filter gives the result; the
+small-angle filter runs on the same data under `methods.small_angle` (docs/gnss-alignment.md).
+Every run leaves a run directory that `northfinder replay` recomputes bit for bit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from northfinder.align import gnss_run as gr
+from northfinder.align import gnss_run_live as live
+from northfinder.errors import InputError
+from northfinder.rundir import RunDir
+
+MIN_DURATION_S = 10.0
+"""5 s still for levelling (GnssAlignConfig.level_s) and some driving after it."""
+UNKNOWN_LEVER_ARM_STD_M = 1.0
+
+
+def _add(parser: argparse.ArgumentParser, flag: str, **kwargs: Any) -> None:
+    """Add a flag unless another align mode already did (`--heading`, `--latitude` are shared)."""
+    if flag not in parser._option_string_actions:
+        parser.add_argument(flag, **kwargs)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The gnss mode's own flags on the `align` parser."""
+    _add(
+        parser,
+        "--heading-error",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="gnss, simulated: start the filter at the truth heading + DEG (default: heading unknown)",
+    )
+    _add(
+        parser,
+        "--lever-arm",
+        default=None,
+        metavar="X,Y,Z",
+        help="gnss: antenna position in IMU axes [m] (simulated: the truth given to firmware-sim; "
+        "hardware: the tape-measured prior, overrides [gnss] lever_arm_m)",
+    )
+    _add(
+        parser,
+        "--initial-heading",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="gnss, hardware: a rough heading to start from (default: unknown, any value works)",
+    )
+    _add(parser, "--heading", type=float, default=None, metavar="DEG", help="simulated initial heading")
+    _add(parser, "--latitude", type=float, default=None, metavar="DEG", help="simulated site latitude")
+
+
+def parse_lever_arm(text: str | None) -> tuple[float, float, float] | None:
+    """'0.5,1.5,1.2' → (0.5, 1.5, 1.2); InputError naming the flag otherwise."""
+    if text is None:
+        return None
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise InputError(
+            f"--lever-arm {text}: give three numbers X,Y,Z in metres (IMU axes x right, y forward, z up)"
+        )
+    if max(abs(v) for v in values) > 50.0:
+        raise InputError(f"--lever-arm {text}: over 50 m from the IMU; give metres, not millimetres")
+    return values  # type: ignore[return-value]
+
+
+def _check(args: argparse.Namespace) -> float:
+    duration = gr.DEFAULT_DURATION_S if args.duration is None else float(args.duration)
+    if not (math.isfinite(duration) and duration >= MIN_DURATION_S):
+        raise InputError(
+            f"--duration {args.duration:g}: use at least {MIN_DURATION_S:g} device seconds "
+            "(5 s standing still for levelling, then the drive; default 300)"
+        )
+    if bool(args.simulate) == bool(args.config):
+        raise InputError("give either --config BENCH_TOML (real IMU and GNSS) or --simulate")
+    if args.simulate:
+        if args.time_scale is not None and not (math.isfinite(args.time_scale) and args.time_scale > 0):
+            raise InputError(f"--time-scale {args.time_scale:g}: use a factor greater than 0")
+        if args.initial_heading is not None and args.heading_error is not None:
+            raise InputError("--initial-heading and --heading-error both given; use one")
+    else:
+        for flag in ("heading_error", "grade", "seed", "time_scale"):
+            if getattr(args, flag, None) is not None:
+                raise InputError(
+                    f"--{flag.replace('_', '-')} is for --simulate; a real vehicle's truth is unknown"
+                )
+        if args.fault:
+            raise InputError("--fault is for --simulate")
+    if args.heading_error is not None and not math.isfinite(args.heading_error):
+        raise InputError(f"--heading-error {args.heading_error}: give degrees")
+    return duration
+
+
+def default_out() -> Path:
+    return Path("runs") / datetime.now(UTC).strftime("align-gnss-%Y%m%dT%H%M%SZ")
+
+
+def run(args: argparse.Namespace) -> int:
+    duration = _check(args)
+    lever = parse_lever_arm(args.lever_arm)
+    rd = RunDir(args.out or default_out())
+    t_wall = time.monotonic()
+    if args.simulate:
+        sim = live.VehicleSim(
+            lever_arm_m=lever or live.SIM_LEVER_ARM_M,
+            grade=args.grade or "kvh1760",
+            seed=1 if args.seed is None else args.seed,
+            time_scale=args.time_scale or live.SIM_DEFAULT_TIME_SCALE,
+            latitude_deg=getattr(args, "latitude", None),
+            heading_deg=getattr(args, "heading", None),
+            faults=tuple(args.fault),
+            truth_log=str((rd.path / gr.TRUTH_LOG).resolve()),
+        )
+        settings = {
+            "initial_heading_deg": args.initial_heading,
+            "heading_std_deg": None,
+            "heading_error_deg": args.heading_error,
+            "lever_arm_prior_m": [0.0, 0.0, 0.0],  # the filter is not told the simulator's lever arm
+            "lever_arm_std_m": UNKNOWN_LEVER_ARM_STD_M,
+            "pos_std_m": [0.5, 0.5, 1.0],
+            "vel_std_m_s": 0.05,
+        }
+        with live.VehicleSimProcess(sim) as endpoints:
+            result = live.acquire_and_align(
+                rd,
+                imu_port=str(endpoints["imu"]),
+                gnss_port=str(endpoints["gnss"]),
+                imu_rate_hz=float(endpoints.get("imu_rate_hz", sim.imu_rate_hz)),
+                rot_format=str(endpoints.get("imu_rot_format", "DELTA")),
+                rot_units="RAD",
+                duration_s=duration,
+                filter_settings=settings,
+                simulate=sim.to_dict(),
+                gnss_start_utc=str(endpoints.get("gnss_start_utc")),
+                time_scale=sim.time_scale,
+                json_path=args.json,
+                config_extra={"endpoints": endpoints},
+            )
+    else:
+        bench = gr.load_bench(args.config)
+        g = bench.gnss
+        prior = lever or g.lever_arm_m
+        settings = {
+            "initial_heading_deg": args.initial_heading,
+            "heading_std_deg": None,
+            "heading_error_deg": None,
+            "lever_arm_prior_m": list(prior) if prior is not None else [0.0, 0.0, 0.0],
+            "lever_arm_std_m": g.lever_arm_std_m if prior is not None else UNKNOWN_LEVER_ARM_STD_M,
+            "pos_std_m": list(g.pos_std_m),
+            "vel_std_m_s": g.vel_std_m_s,
+        }
+        result = live.acquire_and_align(
+            rd,
+            imu_port=bench.imu.port,
+            gnss_port=g.port,
+            imu_rate_hz=float(bench.imu.rate_hz),
+            rot_format=bench.imu.rot_format,
+            rot_units=bench.imu.rot_units,
+            duration_s=duration,
+            filter_settings=settings,
+            imu_baudrate=bench.imu.baudrate,
+            gnss_baudrate=g.baudrate,
+            configure_imu=True,
+            gnss_latency_s=g.latency_s,
+            json_path=args.json,
+            config_extra={"bench": {"imu": bench.imu.__dict__, "gnss": g.__dict__, "source": bench.source}},
+        )
+    print_summary(result, run_dir=rd.path)
+    print(
+        f"wall time {time.monotonic() - t_wall:.1f} s (simulator start, reading, filters and report)",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def _f(v: Any, fmt: str, none: str = "—") -> str:
+    return none if v is None else format(v, fmt)
+
+
+def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
+    """The rich summary: heading ± σ, convergence, lever arm, both filters, truth and errors, counters."""
+    from rich.console import Console
+    from rich.table import Table
+
+    if console is None:
+        console = Console()
+        if not console.is_terminal:
+            console = Console(width=max(console.width, 132))
+    head = Table(title="northfinder align --mode gnss", show_header=False, box=None)
+    head.add_row(
+        "heading",
+        f"[bold]{result['heading_deg']:.4f}° ± {result['heading_std_deg']:.4f}°[/] (1σ, {result['method']})",
+    )
+    head.add_row("converged after", f"{_f(result['converged_after_s'], '.1f')} s (1σ < 1° from then on)")
+    la, las = result["lever_arm_m"], result["lever_arm_std_m"]
+    head.add_row(
+        "lever arm",
+        "(" + ", ".join(f"{v:+.3f}" for v in la) + ") m ± (" + ", ".join(f"{v:.3f}" for v in las) + ")",
+    )
+    head.add_row("pitch, roll", f"{result['pitch_deg']:+.3f}°, {result['roll_deg']:+.3f}°")
+    head.add_row(
+        "device time", f"{result['duration_device_s']:.1f} s, {result['gnss']['updates']} GNSS updates"
+    )
+    ta = result["time_alignment"]
+    extra = (
+        f" (host stamps would say {ta['host_minus_truth_s'] * 1e3:+.1f} ms)"
+        if "host_minus_truth_s" in ta
+        else ""
+    )
+    head.add_row("time alignment", f"{ta['method']}{extra}")
+    if "truth" in result:
+        tr = result["truth"]
+        ratio = (
+            abs(result["error_deg"]) / result["heading_std_deg"] if result["heading_std_deg"] else math.inf
+        )
+        head.add_row(
+            "truth", f"heading {tr['heading_deg']:.4f}° (at the start {tr['heading_at_start_deg']:.4f}°)"
+        )
+        head.add_row("error", f"[bold]{result['error_deg']:+.4f}°[/] ({ratio:.2f} σ)")
+        head.add_row(
+            "position error",
+            f"{_f(result.get('position_error_m'), '.2f')} m; lever arm off by "
+            f"{_f(result.get('lever_arm_error_m'), '.3f')} m",
+        )
+    if not result.get("complete", True):
+        head.add_row("[red]INCOMPLETE[/]", "stopped before the end of the window")
+    console.print(head)
+    t = Table(title="both filters on the same data (* = the result)")
+    for col in (
+        "filter",
+        "heading [deg]",
+        "1σ [deg]",
+        "converged [s]",
+        "error [deg]",
+        "<1° after [s]",
+        "<0.5° after [s]",
+    ):
+        t.add_column(col, justify="right")
+    for name, m in result["methods"].items():
+        t.add_row(
+            name + (" *" if name == result["method"] else ""),
+            f"{m['heading_deg']:.4f}",
+            f"{m['heading_std_deg']:.4f}",
+            _f(m["converged_after_s"], ".1f"),
+            _f(m.get("error_deg"), "+.4f"),
+            _f(m.get("time_below_1deg_s"), ".1f"),
+            _f(m.get("time_below_0p5deg_s"), ".1f"),
+        )
+    console.print(t)
+    s = result["gnss"]["stats"]
+    i = result["imu"]["stats"]
+    console.print(
+        f"NMEA: {s['sentences']} sentences, {s['fixes']} fixes, bad checksum {s['bad_checksum']}, "
+        f"truncated {s['truncated']}, no-fix {s['no_fix']}, malformed {s['malformed']}, "
+        f"missed epochs {s['missed_epochs']}; IMU: {result['imu']['samples']} samples, lost "
+        f"{result['imu']['lost_samples']}, bad CRC {i['bad_crc']}"
+    )
+    if run_dir is not None:
+        console.print(f"run directory: {run_dir}")
