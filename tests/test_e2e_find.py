@@ -38,6 +38,7 @@ POSITIONS = 8
 DWELL_S = 3.0
 TIME_SCALE = 10.0
 FAST_STAGE_TOML = "stage_speed_dps = 90.0\nstage_accel_dps2 = 360.0\nstage_ringing_decay_s = 0.1\n"
+ACCEL_RATE_HZ = 50.0  # the CAN node's TPDO rate in the accuracy runs: half the slcan traffic of 100 Hz
 SIGMA_TOLERANCE = 0.20  # reported σ within 20 % of the noise limit (issue 4)
 
 
@@ -87,6 +88,7 @@ def _noise_limit_deg(truth: dict, total_dwell_s: float) -> float:
 
 
 def _run_cfg(cfg: BenchConfig) -> BenchConfig:
+    cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
     cfg.run.positions = POSITIONS
     cfg.run.dwell_s = DWELL_S
     return cfg.validate()
@@ -96,8 +98,8 @@ def _check_accuracy(result: dict, truth: dict) -> None:
     assert result["complete"] and result["positions_measured"] == POSITIONS
     for p in result["positions"]:
         assert p["samples"] == int(DWELL_S * 1000)
-        assert p["accel_samples"] + p["accel_lost_samples"] == int(DWELL_S * 100)
-        assert p["accel_lost_samples"] <= 0.1 * DWELL_S * 100  # a loaded host may drop a few CAN frames
+        assert p["accel_samples"] + p["accel_lost_samples"] == int(DWELL_S * ACCEL_RATE_HZ)
+        assert p["accel_lost_samples"] <= 0.1 * DWELL_S * ACCEL_RATE_HZ  # a loaded host may drop a few
     limit = _noise_limit_deg(truth, result["duration_device_s"])
     sigma = result["heading_std_deg"]
     err = result["error_deg"]
@@ -121,13 +123,22 @@ def _check_replay(run_dir: Path) -> None:
 
 @pytest.fixture(scope="module")
 def fast_stage(tmp_path_factory) -> Path:
+    """firmware-sim config: the stiffer stage (the accelerometer at its default 100 Hz)."""
     p = tmp_path_factory.mktemp("sim") / "fast_stage.toml"
     p.write_text(FAST_STAGE_TOML)
     return p
 
 
+@pytest.fixture(scope="module")
+def fast_stage_50hz(tmp_path_factory) -> Path:
+    """firmware-sim config for the accuracy runs: the stiffer stage and a 50 Hz accelerometer."""
+    p = tmp_path_factory.mktemp("sim") / "fast_stage_50hz.toml"
+    p.write_text(FAST_STAGE_TOML + f"accel_rate_hz = {ACCEL_RATE_HZ}\n")
+    return p
+
+
 @pytest.mark.parametrize("truth", TRUTHS, ids=[f"truth{k}-{t['grade']}" for k, t in enumerate(TRUTHS)])
-def test_find_against_firmware_sim_process_over_ptys_and_slcan(tmp_path, fast_stage, truth):
+def test_find_against_firmware_sim_process_over_ptys_and_slcan(tmp_path, fast_stage_50hz, truth):
     from northfinder.cli.find import measure
 
     settings = SimSettings(
@@ -138,7 +149,7 @@ def test_find_against_firmware_sim_process_over_ptys_and_slcan(tmp_path, fast_st
         grade=truth["grade"],
         seed=truth["seed"],
         time_scale=TIME_SCALE,
-        config=str(fast_stage),
+        config=str(fast_stage_50hz),
     )
     run_dir = tmp_path / "run"
     with SimulatorProcess(settings) as endpoints:
@@ -176,6 +187,7 @@ def _in_process_run(tmp_path: Path, interface: str, channel: str) -> None:
         stage_speed_dps=90.0,
         stage_accel_dps2=360.0,
         stage_ringing_decay_s=0.1,
+        accel_rate_hz=ACCEL_RATE_HZ,
         can_interface=interface,
         can_channel=channel,
     )

@@ -56,17 +56,10 @@ def probe_accelerometer(cfg: bench.BenchConfig) -> str:
     from northfinder.drivers.accelerometer import Accelerometer
 
     a = cfg.accelerometer
-    bus = None
-    if a.bus_options:
-        from northfinder.cli.find import open_can_bus
-
-        bus = open_can_bus(cfg, a.bus_options)
-    try:
-        with Accelerometer(a.interface, a.channel, bitrate=a.bitrate, node_id=a.node_id, bus=bus) as acc:
-            state = acc.wait_heartbeat(timeout_s=3.0)
-    finally:
-        if bus is not None:
-            bus.shutdown()
+    with Accelerometer(
+        a.interface, a.channel, bitrate=a.bitrate, node_id=a.node_id, bus_options=a.bus_options or None
+    ) as acc:
+        state = acc.wait_heartbeat(timeout_s=3.0)
     name = HEARTBEAT_STATES.get(state, f"unknown 0x{state:02X}")
     return (
         f"accelerometer node 0x{a.node_id:02X} on {a.interface} {a.channel}: heartbeat {name} (0x{state:02X})"

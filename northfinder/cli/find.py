@@ -114,7 +114,7 @@ def open_bench(
     """Open the turntable, the IMU and the accelerometer with their logs in the run directory.
 
     `can_kwargs` are extra python-can bus arguments (e.g. `sleep_after_open` for an slcan
-    adapter that is a pty and needs no 2 s reset wait); with them the bus is opened here.
+    adapter that is a pty and needs no 2 s reset wait); `[accelerometer] bus_options` win.
     """
     from northfinder.drivers.accelerometer import Accelerometer
     from northfinder.drivers.imu import Imu
@@ -148,11 +148,7 @@ def open_bench(
                 ),
             )
         )
-        bus = None
-        can_kwargs = {**(can_kwargs or {}), **a.bus_options}
-        if can_kwargs:
-            bus = open_can_bus(cfg, can_kwargs)
-            stack.callback(bus.shutdown)
+        bus_options = {**(can_kwargs or {}), **a.bus_options}
         acc = stack.enter_context(
             _guard(
                 "accelerometer",
@@ -164,25 +160,11 @@ def open_bench(
                     node_id=a.node_id,
                     rate_hz=a.rate_hz,
                     log_path=rundir.can_log_path if rundir else None,
-                    bus=bus,
+                    bus_options=bus_options or None,
                 ),
             )
         )
         yield tt, imu, acc
-
-
-def open_can_bus(cfg: bench.BenchConfig, can_kwargs: dict[str, Any]) -> Any:
-    import can
-
-    a = cfg.accelerometer
-    try:
-        return can.Bus(interface=a.interface, channel=a.channel, bitrate=a.bitrate, **can_kwargs)
-    except Exception as exc:  # noqa: BLE001 - python-can raises many types; all are the setup's
-        raise DeviceError(
-            "accelerometer",
-            f"{a.interface}:{a.channel}",
-            f"cannot open the CAN bus ({exc}); check the channel",
-        ) from None
 
 
 @contextlib.contextmanager
