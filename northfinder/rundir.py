@@ -209,7 +209,7 @@ class RunDir:
         target = self.file(name)
         tmp = target.with_suffix(target.suffix + ".tmp")
         with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump(_jsonable(data), fh, indent=2, allow_nan=False)
+            json.dump(jsonable(data), fh, indent=2, allow_nan=False)
             fh.write("\n")
             fh.flush()
             os.fsync(fh.fileno())
@@ -219,7 +219,7 @@ class RunDir:
     def log_event(self, event: dict[str, Any]) -> None:
         """Append one event line to events.jsonl and push it to disk."""
         with open(self.file(EVENTS), "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(_jsonable(event), allow_nan=False) + "\n")
+            fh.write(json.dumps(jsonable(event), allow_nan=False) + "\n")
             fh.flush()
             os.fsync(fh.fileno())
 
@@ -245,16 +245,16 @@ class RunDir:
         return out
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
     """numpy scalars/arrays → Python; NaN/inf → None (JSON has no NaN)."""
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
+        return jsonable(obj.tolist())
     if isinstance(obj, np.generic):
-        return _jsonable(obj.item())
+        return jsonable(obj.item())
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj

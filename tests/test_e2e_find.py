@@ -28,7 +28,7 @@ import pytest
 from northfinder.config import BenchConfig
 from northfinder.estimators.limits import noise_limit_heading_std_deg
 from northfinder.rotations import tilt_and_azimuth
-from northfinder.rundir import EVENTS, RESULT, RunDir, _jsonable, replay
+from northfinder.rundir import EVENTS, RESULT, RunDir, jsonable, replay
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 
 pytestmark = pytest.mark.slow
@@ -118,7 +118,7 @@ def _check_replay(run_dir: Path) -> None:
     live = json.loads((run_dir / RESULT).read_text())
     again = replay(run_dir)
     assert again.complete and again.positions_measured == POSITIONS
-    assert json.loads(json.dumps(_jsonable(again.result))) == live  # every number, bit for bit
+    assert json.loads(json.dumps(jsonable(again.result))) == live  # every number, bit for bit
 
 
 @pytest.fixture(scope="module")

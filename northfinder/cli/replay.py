@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from northfinder import config as bench
-from northfinder.rundir import RESULT, RunDir, _jsonable, replay
+from northfinder.rundir import RESULT, RunDir, jsonable, replay
 
 INCOMPLETE_EXIT = 1
 
@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     if outcome.result is None:
         print(f"{head}; a heading needs at least 3 positions, nothing to recompute")
         return INCOMPLETE_EXIT
-    again = json.loads(json.dumps(_jsonable(outcome.result)))
+    again = json.loads(json.dumps(jsonable(outcome.result)))
     live_path = rd.file(RESULT)
     if args.method is None and live_path.exists():
         diff = differences(json.loads(live_path.read_text(encoding="utf-8")), again)
