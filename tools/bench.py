@@ -7,7 +7,9 @@ Rows:
   seed), pinned to one core: frames per second of wall and of CPU time, and the multiple of the
   1 kHz real-time rate (whole buffer = replay; 4096-byte chunks = what the driver's reader sees).
 * **CAN path** — cantools decode + TPDO pairing (:class:`AccelFrameDecoder`), frames/s against
-  the 200 frames/s of 100 Hz pairs (it explains the time-scaled runs below).
+  the 200 frames/s of 100 Hz pairs; and python-can's own slcan client receiving TPDO lines from a
+  pty (it reads one byte per pyserial call: the accelerometer link's ceiling, which limits the
+  time-scaled runs below).
 * **Driver CPU at 1 kHz real time** — ``python -m firmware_sim --time-scale 1`` as a subprocess,
   :class:`northfinder.drivers.imu.Imu` reading ~10 s: this process's CPU (``time.process_time``,
   every thread) and the simulator's (``/proc/<pid>/stat``), as % of one core.
@@ -25,6 +27,7 @@ machine the figures mean little without it.
     python3 tools/bench.py                      # everything (several minutes: the find runs)
     python3 tools/bench.py --skip-find          # the quick rows only
     python3 tools/bench.py --scales 50,20 --profile
+    python3 tools/bench.py --sample 20          # per-thread CPU and stacks of one find
 """
 
 from __future__ import annotations
@@ -179,6 +182,41 @@ def bench_can(n_pairs: int = 5000) -> Row:
     return Row("CAN decode + pairing (cantools)",
                f"{k / wall:,.0f} frames/s = {k / wall / 200:,.0f}× real time",
                f"real time = 200 frames/s (100 Hz pairs); CPU: {k / cpu_s:,.0f} frames/s")
+
+
+def bench_slcan_client(n_frames: int = 20_000) -> Row:
+    """python-can's own slcan client receiving TPDO lines from a pty as fast as it can: the ceiling
+    of the accelerometer link (it reads one byte per pyserial call, python-can issue #2027)."""
+    import tty
+
+    import can
+
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    line = b"t1908E803000030F8FFFF\r"
+    bus = can.Bus(interface="slcan", channel=os.ttyname(slave), bitrate=500000, sleep_after_open=0)
+    try:
+        with contextlib.suppress(BlockingIOError):
+            os.set_blocking(master, False)
+            os.read(master, 4096)  # the C / S6 / O the client sent on open
+        os.set_blocking(master, True)
+        writer = threading.Thread(target=lambda: os.write(master, line * n_frames), daemon=True)
+        got = 0
+        w0, c0 = time.perf_counter(), time.process_time()
+        writer.start()
+        while got < n_frames and bus.recv(timeout=5.0) is not None:
+            got += 1
+        wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+        writer.join(5)
+    finally:
+        bus.shutdown()
+        os.close(master)
+        os.close(slave)
+    return Row("python-can slcan client, receive",
+               f"{got / wall:,.0f} frames/s = {got / wall / 200:,.0f}× real time",
+               f"CPU: {got / cpu:,.0f} frames/s; {len(line)}-byte TPDO lines from a pty; the sim needs "
+               f"200 frames/s × time scale")
 
 
 def start_sim(time_scale: float, seed: int = 1) -> tuple[subprocess.Popen, dict]:
@@ -373,6 +411,78 @@ def profile_find(time_scale: float, timeout_s: float, seed: int, top: int = 18) 
     return text.getvalue()
 
 
+def _sample_child(time_scale: float, seed: int, period_s: float = 0.005, top: int = 6) -> int:
+    """Run find in this process with a stack sampler: per thread, its CPU seconds (from
+    /proc/self/task/<tid>/stat) and the innermost functions it was seen in (wall samples, so
+    waits show up as waits). cProfile sees only the main thread; the losses happen in the
+    reader threads."""
+    import collections
+    import traceback
+
+    from northfinder.cli import main as nf_main
+
+    counts: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+    totals: collections.Counter = collections.Counter()
+    cpu_by_name: dict[str, float] = {}
+    done = threading.Event()
+
+    def thread_cpu(native_id: int) -> float | None:
+        try:
+            f = Path(f"/proc/self/task/{native_id}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            return None
+        return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+    def sampler() -> None:
+        while not done.wait(period_s):
+            threads = {t.ident: t for t in threading.enumerate()}
+            for ident, frame in sys._current_frames().items():
+                if ident == me_sampler[0]:
+                    continue
+                t = threads.get(ident)
+                name = (t.name if t is not None else str(ident)).split(" ")[0]
+                if t is not None and t.native_id is not None:
+                    c = thread_cpu(t.native_id)
+                    if c is not None:
+                        cpu_by_name[f"{name} [{t.native_id}]"] = c
+                leaf = traceback.extract_stack(frame, limit=1)[-1]
+                ours = next((fs for fs in reversed(traceback.extract_stack(frame))
+                             if "/site-packages/" not in fs.filename and "/lib/python3" not in fs.filename),
+                            leaf)
+                where = f"{Path(leaf.filename).name}:{leaf.name}"
+                if ours is not leaf:
+                    where += f"  (from {Path(ours.filename).name}:{ours.name})"
+                counts[name][where] += 1
+                totals[name] += 1
+
+    me_sampler = [0]
+    th = threading.Thread(target=sampler, name="sampler", daemon=True)
+    th.start()
+    me_sampler[0] = th.ident
+    out = Path(tempfile.mkdtemp(prefix="nf-sample-"))
+    t0, c0 = time.monotonic(), time.process_time()
+    code = nf_main(find_cmd(time_scale, out, seed)[2:])
+    wall, cpu = time.monotonic() - t0, time.process_time() - c0
+    done.set()
+    th.join()
+    r = json.loads((out / "result.json").read_text()) if (out / "result.json").exists() else {}
+    pos = r.get("positions", [])
+    lost_imu = sum(p.get("lost_samples", 0) for p in pos)
+    lost_acc = sum(p.get("accel_lost_samples", 0) for p in pos)
+    print(f"\nsampled find at time scale {time_scale:g}: exit {code}, {wall:.1f} s wall, {cpu:.1f} s CPU "
+          f"(this process, all threads), lost IMU {lost_imu}, accel {lost_acc}")
+    print("CPU seconds per thread (the last reading of each thread seen alive):")
+    for name, c in sorted(cpu_by_name.items(), key=lambda kv: -kv[1])[:10]:
+        print(f"  {c:7.2f} s  {name}")
+    print(f"where each thread was (share of {period_s * 1e3:g} ms wall samples):")
+    for name, total in totals.most_common(8):
+        print(f"  {name}  ({total} samples)")
+        for where, k in counts[name].most_common(top):
+            print(f"      {100 * k / total:5.1f} %  {where}")
+    shutil.rmtree(out, ignore_errors=True)
+    return 0
+
+
 # --------------------------------------------------------------------------------------------
 
 
@@ -391,19 +501,28 @@ def main() -> int:
     p.add_argument("--chunk-bytes", type=int, default=4096)
     p.add_argument("--driver-s", type=float, default=10.0, help="seconds of 1 kHz real-time streaming")
     p.add_argument("--trials", type=int, default=10_000, help="Monte Carlo trials per batch")
-    p.add_argument("--scales", default="100,50,20,10", help="time scales to try for find, comma-separated")
+    p.add_argument("--scales", default="100,50,20,15,10", help="time scales to try for find, comma-separated")
     p.add_argument("--find-timeout-s", type=float, default=300.0, help="wall limit per find run")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--skip-find", action="store_true")
     p.add_argument("--profile", action="store_true",
                    help="then profile one find at the lossless scale (or the smallest tried)")
+    p.add_argument("--sample", type=float, metavar="K", default=None,
+                   help="only: run one find at time scale K in-process under a per-thread stack sampler")
+    p.add_argument("--sample-child", type=float, default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.sample_child is not None:
+        return _sample_child(args.sample_child, args.seed)
+    if args.sample is not None:  # a fresh process, so the sampler sees only the find
+        return subprocess.call([sys.executable, __file__, "--sample-child", repr(args.sample),
+                                "--seed", str(args.seed)], cwd=ROOT, env=ENV)
 
     for line in host_lines():
         print(line)
     print(flush=True)
     rows = bench_decoder(args.frames, args.chunk_bytes)
     rows.append(bench_can())
+    rows.append(bench_slcan_client())
     rows.append(bench_driver_cpu(args.driver_s))
     rows += bench_montecarlo(args.trials)
     best = None
