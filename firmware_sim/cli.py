@@ -3,6 +3,13 @@
 Prints one JSON line with the endpoints on stdout, then runs. A user mistake (bad flag value,
 unknown key or fault, unreadable TOML) is one line on stderr and exit code 2. Imports are kept
 lean so the endpoints appear quickly; the physics and devices load in `Simulator.start`.
+
+    firmware-sim                                   # the bench: turntable, IMU, CAN accelerometer
+    firmware-sim --scenario ship --sway "roll=10:8,pitch=5:6,yaw=3:10,heave=0.5:7" --lever-arm 1,2,1.5
+    firmware-sim --scenario vehicle --lever-arm 0.5,1.5,1.2 --truth-log truth.jsonl
+
+`--lever-arm` is the IMU's (from the centre of rotation) for the bench and the ship, the GNSS
+antenna's (from the IMU) for the vehicle. Scenarios and the truth log: docs/simulator.md.
 """
 
 from __future__ import annotations
@@ -10,17 +17,65 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import signal
 import sys
 import threading
 from typing import Any
 
 from firmware_sim import __version__
-from firmware_sim.config import ConfigError, SimConfig, config_from_mapping, load_toml
+from firmware_sim.config import SWAY_AXES, ConfigError, SimConfig, config_from_mapping, load_toml
+
+SWAY_EXAMPLE = "roll=10:8,pitch=5:6,yaw=3:10,heave=0.5:7"
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse whose mistakes are one line (no usage block), exit code 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"firmware-sim: {message} (see firmware-sim --help)\n")
+
+
+def parse_sway(text: str) -> dict[str, list[list[float]]]:
+    """`"roll=10:8,heave=0.5:7:90"` → {"roll": [[10, 8]], "heave": [[0.5, 7, 90]]}; "none" → {} (still).
+
+    AXIS=AMP:PERIOD_S[:PHASE_DEG], comma-separated; an axis given twice gets two terms.
+    """
+    if text.strip().lower() in ("none", "0", "off"):
+        return {}
+    out: dict[str, list[list[float]]] = {}
+    for item in text.split(","):
+        axis, sep, value = item.strip().partition("=")
+        axis = axis.strip().lower()
+        if not sep or axis not in SWAY_AXES:
+            raise ConfigError(f"--sway {item.strip()!r}: write AXIS=AMP:PERIOD_S[:PHASE_DEG] with AXIS "
+                              f"one of {', '.join(SWAY_AXES)}, e.g. --sway \"{SWAY_EXAMPLE}\"")
+        try:
+            numbers = [float(v) for v in value.split(":")]
+        except ValueError:
+            numbers = []
+        if not 2 <= len(numbers) <= 3 or not all(math.isfinite(v) for v in numbers) or numbers[1] <= 0:
+            unit = "m" if axis in ("surge", "sway", "heave") else "deg"
+            raise ConfigError(f"--sway {item.strip()}: give {axis}=AMP:PERIOD_S[:PHASE_DEG] as numbers "
+                              f"(AMP in {unit}, PERIOD_S > 0), e.g. --sway \"{SWAY_EXAMPLE}\"")
+        out.setdefault(axis, []).append(numbers)
+    return out
+
+
+def parse_lever_arm(text: str) -> tuple[float, float, float]:
+    """`"1,2,1.5"` → (1.0, 2.0, 1.5) metres in b (x right, y forward, z up)."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ConfigError(f"--lever-arm {text}: give three numbers X,Y,Z in metres (b axes: x right, "
+                          "y forward, z up), e.g. --lever-arm 1,2,1.5")
+    return values  # type: ignore[return-value]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="firmware-sim",
         description="The north-finding bench in software: SMC100 turntable and KVH IMU on ptys, "
         "CANopen accelerometer behind an slcan adapter, one physical world.",
@@ -32,6 +87,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--grade", metavar="NAME", help="sensor preset: nav, kvh1760, tactical-mems, consumer")
     p.add_argument("--seed", type=int, metavar="N", help="random seed (same seed, same bytes)")
     p.add_argument("--time-scale", type=float, metavar="K", help="device time runs K× the wall clock")
+    p.add_argument("--scenario", metavar="NAME",
+                   help="bench (turntable + IMU + CAN accelerometer, default) | ship (IMU on a swaying "
+                   "base) | vehicle (IMU + GNSS on a driving car)")
+    p.add_argument("--sway", metavar="SPEC",
+                   help=f"sway per axis, AXIS=AMP:PERIOD_S[:PHASE_DEG] (deg; m for surge/sway/heave), "
+                   f"'none' for still; the ship's default is {SWAY_EXAMPLE!r} with phases from the seed")
+    p.add_argument("--lever-arm", metavar="X,Y,Z",
+                   help="metres in b: the IMU's from the centre of rotation (bench, ship; ship default "
+                   "1,2,1.5), the GNSS antenna's from the IMU (vehicle; default 0.5,1.5,1.2)")
+    p.add_argument("--imu-rate", type=int, metavar="HZ", help="IMU data rate (default 1000; vehicle 250)")
+    p.add_argument("--truth-log", metavar="PATH", help="write the truth as JSON lines (docs/simulator.md)")
+    p.add_argument("--truth-rate", type=float, metavar="HZ", help="truth samples per device second (50)")
     p.add_argument("--config", metavar="FILE.toml", help="the other settings (keys as SimConfig)")
     p.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
                    help="inject a fault (repeatable), e.g. imu-silence=10:2")
@@ -57,10 +124,16 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
         raise ConfigError(f"{source}: faults must be a table or a list of \"NAME=VALUE\" strings")
     for flag, key in (("heading", "heading_deg"), ("pitch", "pitch_deg"), ("roll", "roll_deg"),
                       ("latitude", "latitude_deg"), ("grade", "grade"), ("seed", "seed"),
-                      ("time_scale", "time_scale")):
+                      ("time_scale", "time_scale"), ("scenario", "scenario"), ("imu_rate", "imu_rate_hz"),
+                      ("truth_log", "truth_log"), ("truth_rate", "truth_rate_hz")):
         value = getattr(args, flag)
         if value is not None:
             data[key] = value
+    if args.sway is not None:
+        data["sway"] = parse_sway(args.sway)
+    if args.lever_arm is not None:
+        key = "gnss_lever_arm_m" if data.get("scenario", "bench") == "vehicle" else "imu_lever_arm_m"
+        data[key] = parse_lever_arm(args.lever_arm)
     data["faults"] = fault_specs + list(args.fault)
     return config_from_mapping(data, source=source)
 

@@ -2,10 +2,16 @@
 
 Degrees, seconds and metres at this edge (suffixes in the names); the simulator converts.
 An example with every key: firmware_sim/data/example.toml.
+
+Three scenarios (`scenario`): `bench` (turntable + IMU + CAN accelerometer, the default),
+`ship` (the IMU alone on a swaying base, at a lever arm from the centre of rotation) and
+`vehicle` (IMU + GNSS receiver on a driving car). A key left as None takes its scenario's
+default (`SCENARIO_DEFAULTS`); `check` fills it in, so a checked config has no None there.
 """
 
 from __future__ import annotations
 
+import datetime as dt
 import math
 import tomllib
 from collections.abc import Mapping
@@ -19,6 +25,19 @@ IMU_VARIANTS = ("gyro-1axis", "gyro-3axis", "gyro-accel")
 IMU_RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
 CAN_INTERFACES = ("slcan", "virtual", "socketcan")
 GRADES = ("nav", "kvh1760", "tactical-mems", "consumer")
+SCENARIOS = ("bench", "ship", "vehicle")
+SWAY_AXES = ("roll", "pitch", "yaw", "surge", "sway", "heave")
+"""roll, pitch, yaw in degrees; surge (along the mean heading), sway (to its right), heave (up) in m."""
+REFERENCE_SWAY: dict[str, list[list[float]]] = {
+    "roll": [[10.0, 8.0]], "pitch": [[5.0, 6.0]], "yaw": [[3.0, 10.0]], "heave": [[0.5, 7.0]],
+}
+"""The swaying-base paper's reference: roll 10°/8 s, pitch 5°/6 s, yaw 3°/10 s, heave 0.5 m/7 s."""
+SCENARIO_DEFAULTS: dict[str, dict[str, Any]] = {
+    "bench": {"latitude_deg": 45.0, "imu_rate_hz": 1000, "imu_lever_arm_m": (0.0, 0.0, 0.0)},
+    "ship": {"latitude_deg": 40.0, "imu_rate_hz": 1000, "imu_lever_arm_m": (1.0, 2.0, 1.5)},
+    "vehicle": {"latitude_deg": 40.0, "imu_rate_hz": 250, "imu_lever_arm_m": (0.0, 0.0, 0.0)},
+}
+GNSS_RATES_HZ = (1, 5, 10)
 """The sensor presets of docs/ARCHITECTURE.md (firmware_sim/physics/sensors.py), named here so that a
 wrong name is refused before the physics (and scipy) is imported."""
 
@@ -31,10 +50,14 @@ class ConfigError(ValueError):
 class SimConfig:
     """Everything the bench needs; every field is also a TOML key."""
 
+    scenario: str = "bench"
+    """bench | ship | vehicle."""
     heading_deg: float = 0.0
+    """Platform heading (bench), mean heading (ship), initial heading (vehicle)."""
     pitch_deg: float = 0.0
     roll_deg: float = 0.0
-    latitude_deg: float = 45.0
+    latitude_deg: float | None = None
+    """None: 45 for the bench, 40 for the ship and the vehicle."""
     height_m: float = 0.0
     grade: str = "nav"
     """Gyro + accelerometer preset: nav, kvh1760, tactical-mems, consumer."""
@@ -42,11 +65,13 @@ class SimConfig:
     time_scale: float = 1.0
     # IMU (KVH format A)
     imu_variant: str = "gyro-accel"
-    imu_rate_hz: int = 1000
+    imu_rate_hz: int | None = None
+    """None: 1000 Hz (bench, ship) or 250 Hz (vehicle)."""
     imu_rot_format: str = "DELTA"
     imu_rot_units: str = "RAD"
     imu_temperature_c: float = 25.0
-    imu_lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    imu_lever_arm_m: tuple[float, float, float] | None = None
+    """IMU position in b from the centre of rotation; None: (1, 2, 1.5) m for the ship, else 0."""
     # turntable (SMC100)
     stage_address: int = 1
     stage_power_on_deg: float | None = None
@@ -71,7 +96,21 @@ class SimConfig:
     accel_enabled: bool = True
     # platform motion and faults
     sway: dict[str, Any] | None = None
-    """Swaying base, passed to the physics' World (e.g. amplitudes and periods per axis)."""
+    """Swaying base: per axis a list of [amplitude, period_s(, phase_deg)]. None: no sway on the
+    bench, the reference sway (REFERENCE_SWAY) on the ship; {} a still ship. The ship's terms
+    without a phase get one drawn from the seed; the bench's default to 0."""
+    # GNSS receiver (vehicle)
+    gnss_rate_hz: int = 10
+    gnss_lever_arm_m: tuple[float, float, float] = (0.5, 1.5, 1.2)
+    """Antenna position in b from the IMU."""
+    gnss_start_utc: str = "2026-11-22T12:00:00Z"
+    """UTC of device time 0 in the NMEA sentences (ISO 8601, whole centiseconds)."""
+    longitude_deg: float = 116.3
+    # truth log
+    truth_log: str | None = None
+    """Path of the JSON-lines truth log (docs/simulator.md); None: none."""
+    truth_rate_hz: float = 50.0
+    """Truth samples per device second."""
     faults: Faults = field(default_factory=Faults)
 
     def __post_init__(self) -> None:
@@ -105,6 +144,8 @@ def check(cfg: SimConfig) -> None:
         elif f.name == "sway":
             if value is not None and not isinstance(value, Mapping):
                 raise ConfigError(f"sway = {value!r}: give a table, e.g. [sway] with amplitudes and periods")
+        elif value is None and "None" in t:
+            continue
         elif t.startswith("tuple"):
             if not isinstance(value, list | tuple) or len(value) != 3:
                 raise ConfigError(f"{f.name} = {value!r}: give three numbers [x, y, z] in metres")
@@ -112,7 +153,7 @@ def check(cfg: SimConfig) -> None:
         elif t.startswith("float"):
             if value is not None or "None" not in t:
                 setattr(cfg, f.name, float(_number(f.name, value)))
-        elif t == "int":
+        elif t.startswith("int"):
             setattr(cfg, f.name, int(_number(f.name, value, integer=True)))
         elif t == "bool":
             if not isinstance(value, bool):
@@ -120,6 +161,18 @@ def check(cfg: SimConfig) -> None:
         elif t.startswith("str"):
             if value is not None and not isinstance(value, str):
                 raise ConfigError(f"{f.name} = {value!r}: give a string")
+    if cfg.scenario not in SCENARIOS:
+        raise ConfigError(f"scenario = {cfg.scenario!r}: use one of {', '.join(SCENARIOS)}")
+    for key, value in SCENARIO_DEFAULTS[cfg.scenario].items():
+        if getattr(cfg, key) is None:
+            setattr(cfg, key, value)
+    if cfg.scenario == "ship" and cfg.sway is None:
+        cfg.sway = {axis: [list(term) for term in terms] for axis, terms in REFERENCE_SWAY.items()}
+    if cfg.sway is not None:
+        check_sway(cfg.sway)
+        if cfg.scenario == "vehicle" and cfg.sway:
+            raise ConfigError("sway: the vehicle scenario drives its own trajectory; give sway only "
+                              "with scenario = 'bench' or 'ship'")
     if cfg.grade not in GRADES:
         raise ConfigError(f"grade = {cfg.grade!r}: use one of {', '.join(GRADES)}")
     if not -90.0 <= cfg.latitude_deg <= 90.0:
@@ -150,11 +203,58 @@ def check(cfg: SimConfig) -> None:
         raise ConfigError(f"can_node_id = {cfg.can_node_id}: give a CANopen node id 1..127")
     if cfg.accel_rate_hz <= 0.0:
         raise ConfigError(f"accel_rate_hz = {cfg.accel_rate_hz}: give a rate > 0")
+    if cfg.gnss_rate_hz not in GNSS_RATES_HZ:
+        raise ConfigError(f"gnss_rate_hz = {cfg.gnss_rate_hz}: use one of {GNSS_RATES_HZ}")
+    gnss_start(cfg)
+    if not cfg.truth_rate_hz > 0.0:
+        raise ConfigError(f"truth_rate_hz = {cfg.truth_rate_hz}: give a rate > 0 samples per device second")
+    if cfg.truth_log is not None and not cfg.truth_log.strip():
+        raise ConfigError("truth_log = '': give the path of a file to write, or leave it out")
     for name in ("stage_speed_dps", "stage_accel_dps2", "stage_home_speed_dps", "stage_ringing_hz",
                  "encoder_step_deg"):
         value = getattr(cfg, name)
         if value is not None and value <= 0.0:
             raise ConfigError(f"{name} = {value}: give a value > 0 (or leave it out for the default)")
+
+
+def check_sway(spec: Mapping[str, Any]) -> None:
+    """Axis names, and terms [amplitude, period_s(, phase_deg)] of finite numbers with period_s > 0."""
+    for axis, terms in spec.items():
+        if axis not in SWAY_AXES:
+            raise ConfigError(f"sway.{axis}: unknown axis; use {', '.join(SWAY_AXES)}")
+        if not isinstance(terms, list | tuple):
+            raise ConfigError(f"sway.{axis}: give a list of [amplitude, period_s(, phase_deg)]")
+        for term in terms:
+            try:
+                if isinstance(term, Mapping):
+                    values = [term["amplitude"], term["period_s"], term.get("phase_deg", 0.0)]
+                else:
+                    values = list(term)
+                if not 2 <= len(values) <= 3 or any(isinstance(v, bool) for v in values):
+                    raise ValueError
+                numbers = [float(v) for v in values]
+            except (KeyError, TypeError, ValueError):
+                raise ConfigError(
+                    f"sway.{axis}: term {term!r} is not [amplitude, period_s(, phase_deg)]") from None
+            if not all(math.isfinite(v) for v in numbers):
+                raise ConfigError(f"sway.{axis}: term {term!r} must hold finite numbers")
+            if not numbers[1] > 0.0:
+                raise ConfigError(f"sway.{axis}: period_s must be > 0 in {term!r}")
+
+
+def gnss_start(cfg: SimConfig) -> dt.datetime:
+    """`gnss_start_utc` as an aware datetime; ConfigError if it is not ISO 8601 in whole centiseconds."""
+    text = cfg.gnss_start_utc
+    try:
+        start = dt.datetime.fromisoformat(str(text).strip())
+    except ValueError:
+        raise ConfigError(f"gnss_start_utc = {text!r}: give an ISO 8601 UTC time, "
+                          "e.g. \"2026-11-22T12:00:00Z\"") from None
+    if start.tzinfo is None:
+        start = start.replace(tzinfo=dt.UTC)
+    if start.microsecond % 10_000:
+        raise ConfigError(f"gnss_start_utc = {text!r}: give whole centiseconds (NMEA time resolution)")
+    return start.astimezone(dt.UTC)
 
 
 KEYS = tuple(f.name for f in fields(SimConfig))

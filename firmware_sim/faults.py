@@ -38,6 +38,12 @@ class Faults:
     """Device time from which the CAN accelerometer sends no heartbeat."""
     disturbance: tuple[float, float, float] | None = None
     """(start_s, duration_s, amplitude_deg): a knock on the platform."""
+    gnss_bad_checksum_rate: float = 0.0
+    """Probability per NMEA sentence that its checksum is wrong (vehicle scenario)."""
+    gnss_truncate_rate: float = 0.0
+    """Probability per NMEA sentence that it is cut short before its checksum."""
+    gnss_nofix: tuple[float, float] | None = None
+    """(start_s, duration_s): the GNSS receiver reports no fix in that window."""
 
     @property
     def active(self) -> list[str]:
@@ -71,6 +77,9 @@ _DOC = {
     "accel-emcy": "AT_S or AT_S:CODE (device seconds, CANopen code), e.g. accel-emcy=3:0x5000",
     "accel-heartbeat-loss": "AT_S in device seconds, e.g. accel-heartbeat-loss=4",
     "disturbance": "START_S:DURATION_S:AMPLITUDE_DEG, e.g. disturbance=20:0.5:0.1",
+    "gnss-bad-checksum-rate": "a probability 0..1 per NMEA sentence, e.g. gnss-bad-checksum-rate=0.01",
+    "gnss-truncate-rate": "a probability 0..1 per NMEA sentence, e.g. gnss-truncate-rate=0.01",
+    "gnss-nofix": "START_S:DURATION_S in device seconds, e.g. gnss-nofix=30:5",
 }
 
 DEFAULT_DISCONNECT_DOWN_S = 1.0
@@ -103,10 +112,13 @@ def parse_fault(name: str, value: object) -> tuple[str, object]:
         known = ", ".join(sorted(_DOC))
         raise FaultError(f"unknown fault {name!r}; known faults: {known}")
     text = str(value).strip()
-    if key in ("imu-crc-rate", "imu-drop-byte-rate", "accel-loss-rate"):
+    if key in ("imu-crc-rate", "imu-drop-byte-rate", "accel-loss-rate", "gnss-bad-checksum-rate",
+               "gnss-truncate-rate"):
         parsed: object = _rate(key, text)
-    elif key == "imu-silence":
+    elif key in ("imu-silence", "gnss-nofix"):
         start, dur = _floats(key, text, 2, 2)
+        if key == "gnss-nofix" and dur <= 0.0:
+            raise FaultError(f"fault {key}={text}: DURATION_S must be > 0; expected {_DOC[key]}")
         parsed = (start, dur)
     elif key == "imu-disconnect":
         vals = _floats(key, text, 1, 2)

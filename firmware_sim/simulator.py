@@ -3,21 +3,31 @@
 Each tick the loop reads the device clock once, services the ports that have input, then lets
 every device emit what it owes up to that device time. It sleeps in `select` between ticks
 (a few ms of wall time), waking at once when a client writes, so no core spins.
+
+Scenarios (`SimConfig.scenario`): `bench` — SMC100 turntable, KVH IMU, CAN accelerometer on a
+still (or swaying) platform; `ship` — the KVH IMU alone on a `SwayingPlatform`, at a lever arm
+from the centre of rotation; `vehicle` — the KVH IMU and an NMEA GNSS receiver on the
+`VehicleTrajectory`. `TruthLog` writes the world's truth as JSON lines for the device times a
+client needs (docs/simulator.md), with the events that tie a client's frames to device time.
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import math
 import select
 import threading
 import time
-from typing import Any
+from dataclasses import asdict
+from typing import Any, TextIO
 
 import numpy as np
 
 from firmware_sim.clock import DeviceClock
-from firmware_sim.config import SimConfig
+from firmware_sim.config import SWAY_AXES, ConfigError, SimConfig, gnss_start
 from firmware_sim.devices.base import Device
+from firmware_sim.physics import earth
 from firmware_sim.pty import PtyPort
 
 __all__ = ["SimConfig", "Simulator"]
@@ -28,15 +38,47 @@ TICK_WALL_S = 0.005
 """Longest wall time between two ticks; input wakes the loop earlier."""
 CLIENT_STALL_WALL_S = 1.0
 """A connected IMU client may stop reading for this long (wall) before bytes are dropped."""
+CONNECT_GRACE_WALL_S = 0.05
+"""A new IMU client gets its first frame this long (wall) after the IMU sees it: pyserial flushes
+its input right after opening, and a frame delivered before that flush would be lost unseen."""
+TRUTH_BATCH_WALL_S = 0.1
+"""The truth log computes and writes its samples in batches about this far apart (wall)."""
 
-# independent random streams, one per purpose, from the one seed (SeedSequence.spawn order)
-_STREAM_GYRO, _STREAM_IMU_ACCEL, _STREAM_CAN_ACCEL, _STREAM_IMU_FAULTS, _STREAM_CAN_FAULTS = range(5)
+# independent random streams, one per purpose, from the one seed (SeedSequence.spawn order);
+# new purposes go at the end so that the existing streams, and so the bench's bytes, never change
+(_STREAM_GYRO, _STREAM_IMU_ACCEL, _STREAM_CAN_ACCEL, _STREAM_IMU_FAULTS, _STREAM_CAN_FAULTS,
+ _STREAM_GNSS, _STREAM_GNSS_FAULTS, _STREAM_SWAY_PHASES) = range(8)
+N_STREAMS = 8
 
 
-def build_world(cfg: SimConfig) -> Any:
-    """The physics' World for this config (site, platform attitude, sway, table, disturbance)."""
+def build_world(cfg: SimConfig, phase_seed: Any = None) -> Any:
+    """The physics' World for this config (site, platform attitude or trajectory, table, disturbance).
+
+    `phase_seed`: where the ship's sway phases come from when the config gives none (by default
+    the seed's own stream, as the simulator uses it).
+    """
     from firmware_sim.physics.table import TableMotion
     from firmware_sim.physics.world import Site, StaticPlatform, SwayingPlatform, World
+
+    site = Site(cfg.latitude_deg, cfg.height_m)
+    if cfg.scenario != "bench":
+        # no turntable: b is the platform (α = 0, no ringing)
+        still = TableMotion(power_on_deg=0.0, ringing_amplitude_deg=None)
+        if cfg.scenario == "vehicle":
+            from firmware_sim.physics.vehicle import VehicleTrajectory
+
+            platform: Any = VehicleTrajectory(heading0_deg=cfg.heading_deg)
+        elif cfg.sway:
+            if phase_seed is None:
+                phase_seed = np.random.SeedSequence(cfg.seed).spawn(N_STREAMS)[_STREAM_SWAY_PHASES]
+            terms = _sway_terms(cfg.sway, np.random.default_rng(phase_seed))
+            platform = SwayingPlatform(cfg.heading_deg, cfg.pitch_deg, cfg.roll_deg, **terms)
+        else:
+            platform = StaticPlatform(cfg.heading_deg, cfg.pitch_deg, cfg.roll_deg)
+        world = World(site, platform, still)
+        if cfg.faults.disturbance is not None:
+            world.add_disturbance(*cfg.faults.disturbance)
+        return world
 
     table_kw: dict[str, Any] = {}
     for key, name in (
@@ -53,9 +95,8 @@ def build_world(cfg: SimConfig) -> Any:
         if value is not None:
             table_kw[key] = value
     table = TableMotion(**table_kw)
-    site = Site(cfg.latitude_deg, cfg.height_m)
     if cfg.sway:
-        platform: Any = SwayingPlatform(cfg.heading_deg, cfg.pitch_deg, cfg.roll_deg, **_sway_terms(cfg.sway))
+        platform = SwayingPlatform(cfg.heading_deg, cfg.pitch_deg, cfg.roll_deg, **_sway_terms(cfg.sway))
     else:
         platform = StaticPlatform(cfg.heading_deg, cfg.pitch_deg, cfg.roll_deg)
     world = World(site, platform, table)
@@ -64,32 +105,36 @@ def build_world(cfg: SimConfig) -> Any:
     return world
 
 
-SWAY_AXES = ("roll", "pitch", "yaw", "surge", "sway", "heave")
-
-
-def _sway_terms(spec: dict[str, Any]) -> dict[str, tuple[Any, ...]]:
+def _sway_terms(spec: dict[str, Any],
+                phase_rng: np.random.Generator | None = None) -> dict[str, tuple[Any, ...]]:
     """`{roll = [[2.0, 8.0], [0.5, 3.1, 40]], heave = [{amplitude = 0.3, period_s = 6}]}` → Sinusoids.
 
     Each term: [amplitude, period_s] or [amplitude, period_s, phase_deg], or a table with those
-    keys; amplitudes in degrees (roll, pitch, yaw) or metres (surge, sway, heave).
+    keys; amplitudes in degrees (roll, pitch, yaw) or metres (surge, sway, heave). A term without
+    a phase gets 0 (bench) or, with `phase_rng` (ship), a phase uniform in [0°, 360°), drawn
+    axis by axis in SWAY_AXES order and term by term.
     """
-    from firmware_sim.config import ConfigError
     from firmware_sim.physics.world import Sinusoid
 
     out: dict[str, tuple[Any, ...]] = {}
-    for axis, terms in spec.items():
+    for axis in sorted(spec, key=lambda a: SWAY_AXES.index(a) if a in SWAY_AXES else len(SWAY_AXES)):
+        terms = spec[axis]
         if axis not in SWAY_AXES:
             raise ConfigError(f"sway.{axis}: unknown axis; use {', '.join(SWAY_AXES)}")
-        if not isinstance(terms, list):
+        if not isinstance(terms, list | tuple):
             raise ConfigError(f"sway.{axis}: give a list of [amplitude, period_s(, phase_deg)]")
         built = []
         for term in terms:
             try:
                 if isinstance(term, dict):
-                    built.append(Sinusoid(float(term["amplitude"]), float(term["period_s"]),
-                                          float(term.get("phase_deg", 0.0))))
+                    values = [term["amplitude"], term["period_s"]]
+                    if "phase_deg" in term:
+                        values.append(term["phase_deg"])
                 else:
-                    built.append(Sinusoid(*(float(v) for v in term)))
+                    values = list(term)
+                if len(values) == 2 and phase_rng is not None:
+                    values.append(phase_rng.uniform(0.0, 360.0))
+                built.append(Sinusoid(*(float(v) for v in values)))
             except (KeyError, TypeError, ValueError):
                 raise ConfigError(
                     f"sway.{axis}: term {term!r} is not [amplitude, period_s(, phase_deg)]") from None
@@ -99,11 +144,186 @@ def _sway_terms(spec: dict[str, Any]) -> dict[str, tuple[Any, ...]]:
     return out
 
 
+def platform_position_enu_m(platform: Any, t: np.ndarray) -> np.ndarray:
+    """ENU position [N,3] of the platform's reference point about the site: a trajectory's own,
+    a swaying base's surge/sway/heave (as `SwayingPlatform.kinematics` moves it), else 0."""
+    t = np.asarray(t, dtype=float)
+    if hasattr(platform, "position_enu_m"):
+        return np.asarray(platform.position_enu_m(t), dtype=float).reshape(len(t), 3)
+    pos = np.zeros((len(t), 3))
+    h0 = math.radians(getattr(platform, "heading_deg", 0.0))
+    directions = (("surge", (math.sin(h0), math.cos(h0), 0.0)), ("sway", (math.cos(h0), -math.sin(h0), 0.0)),
+                  ("heave", (0.0, 0.0, 1.0)))
+    for name, u in directions:
+        for term in getattr(platform, name, ()):
+            pos += term.eval(t)[0][:, None] * np.asarray(u)
+    return pos
+
+
+def euler_deg(c_bn: np.ndarray) -> np.ndarray:
+    """(heading [0, 360), pitch, roll) in degrees [N,3] of C_b^n = Rz(−ψ)Rx(θ)Ry(γ) (CONVENTIONS.md):
+    C[0,1] = sin ψ cos θ, C[1,1] = cos ψ cos θ, C[2,1] = sin θ, C[2,0] = −cos θ sin γ,
+    C[2,2] = cos θ cos γ."""
+    psi = np.degrees(np.arctan2(c_bn[:, 0, 1], c_bn[:, 1, 1])) % 360.0
+    theta = np.degrees(np.arcsin(np.clip(c_bn[:, 2, 1], -1.0, 1.0)))
+    gamma = np.degrees(np.arctan2(-c_bn[:, 2, 0], c_bn[:, 2, 2]))
+    return np.stack([psi, theta, gamma], axis=-1)
+
+
+class TruthLog(Device):
+    """The world's truth as JSON lines (docs/simulator.md): a header, then truth samples every
+    1/truth_rate_hz of device time and the devices' events (client connects, k ↔ t anchors), in
+    device-time order, flushed batch by batch (about every TRUTH_BATCH_WALL_S of wall time).
+
+    Why: for a simulated run the simulator is the ground truth, and northfinder, which cannot
+    import firmware_sim, needs the truth at the device time of its result.
+    """
+
+    name = "truth"
+    FORMAT = "firmware_sim truth log"
+    VERSION = 1
+
+    def __init__(self, path: str, sim: Simulator, *, batch_device_s: float) -> None:
+        try:
+            self._fh: TextIO = open(path, "w", encoding="utf-8")  # noqa: SIM115 - closed in close()
+        except OSError as exc:
+            raise ConfigError(f"truth_log = {path!r}: cannot write it ({exc.strerror}); "
+                              "give a path in a writable directory") from None
+        self.path = str(path)
+        self.sim = sim
+        self.rate_hz = float(sim.config.truth_rate_hz)
+        self.batch_device_s = max(float(batch_device_s), 1.0 / self.rate_hz)
+        self._next_i = 0  # next truth sample, at device time i / rate_hz
+        self._written_until_s = -math.inf
+        self._events: list[tuple[float, str]] = []
+        self._lock = threading.Lock()
+        self.closed = False
+        self.rows_written = 0
+
+    # -- what a row holds ---------------------------------------------------------------------
+    def fields(self) -> list[str]:
+        out = ["t_device_s", "heading_deg", "pitch_deg", "roll_deg", "imu_pos_enu_m", "imu_vel_enu_m_s"]
+        if self.sim.config.scenario == "bench":
+            out += ["platform_heading_deg", "platform_pitch_deg", "platform_roll_deg", "table_deg",
+                    "table_encoder_deg"]
+        if self.sim.gnss is not None:
+            out += ["antenna_pos_enu_m", "antenna_vel_enu_m_s"]
+        return out
+
+    def truth(self, t_s: np.ndarray) -> dict[str, np.ndarray]:
+        """Every field of `fields()` at device times t_s [N], vectorized."""
+        world = self.sim.world
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        plat = world.platform
+        if hasattr(plat, "attitude") and hasattr(plat, "velocity_enu_m_s") and not world.disturbances:
+            c_pn, w_np, _ = plat.attitude(t)  # a trajectory: C_p^n and ω_np^p directly (cheaper)
+            vel_ref = plat.velocity_enu_m_s(t)
+        else:
+            c_pn, w_np, _ = world.attitude(t)
+            vel_ref = np.broadcast_to(plat.kinematics(t, world.site).vel_enu_m_s, (len(t), 3))
+        pos_ref = platform_position_enu_m(plat, t)
+        alpha, alpha_dot, _ = world.table.kinematics(t)
+        c_pn = np.broadcast_to(c_pn, (len(t), 3, 3))
+        c_bn = c_pn @ earth.rot_z(alpha)
+        w_nb = earth.rot_z_transpose_apply(alpha, np.broadcast_to(w_np, (len(t), 3)))
+        w_nb[:, 2] += alpha_dot
+
+        def point(r_b: Any) -> tuple[np.ndarray, np.ndarray]:
+            r = np.asarray(r_b, dtype=float)
+            return (pos_ref + np.einsum("nij,j->ni", c_bn, r),
+                    vel_ref + np.einsum("nij,nj->ni", c_bn, earth.cross(w_nb, r)))
+
+        hpr = euler_deg(c_bn)
+        out = {"t_device_s": t, "heading_deg": hpr[:, 0], "pitch_deg": hpr[:, 1], "roll_deg": hpr[:, 2]}
+        out["imu_pos_enu_m"], out["imu_vel_enu_m_s"] = point(self.sim.imu.lever_arm_b_m)
+        if self.sim.config.scenario == "bench":
+            php = euler_deg(c_pn)
+            out.update(platform_heading_deg=php[:, 0], platform_pitch_deg=php[:, 1],
+                       platform_roll_deg=php[:, 2], table_deg=np.degrees(alpha),
+                       table_encoder_deg=np.degrees(world.table.encoder_rad(t)))
+        if self.sim.gnss is not None:
+            out["antenna_pos_enu_m"], out["antenna_vel_enu_m_s"] = point(self.sim.gnss.lever_arm_b_m)
+        return out
+
+    # -- writing ------------------------------------------------------------------------------
+    def write_header(self, endpoints: dict[str, Any]) -> None:
+        """The first line: format, scenario, seed, the whole config, endpoints, what rows hold."""
+        cfg = self.sim.config
+        header: dict[str, Any] = {
+            "type": "header", "format": self.FORMAT, "version": self.VERSION, "scenario": cfg.scenario,
+            "seed": cfg.seed, "config": asdict(cfg), "endpoints": endpoints, "truth_rate_hz": self.rate_hz,
+            "fields": self.fields(),
+            "imu": {"rate_hz": self.sim.imu.rate_hz, "variant": self.sim.imu.variant,
+                    "lever_arm_b_m": np.asarray(self.sim.imu.lever_arm_b_m).tolist(),
+                    "sample_k": "k = 1, 2, ... since power-on; sequence (k - 1) mod 128; "
+                                "device time of its interval's end t = k / rate_hz until an imu_grid event"},
+            "enu_origin": {"latitude_deg": cfg.latitude_deg, "longitude_deg": cfg.longitude_deg,
+                           "height_m": cfg.height_m},
+        }
+        sway = {name: [[term.amplitude, term.period_s, term.phase_deg] for term in terms]
+                for name in SWAY_AXES if (terms := getattr(self.sim.world.platform, name, ()))}
+        if sway:
+            header["sway"] = sway
+        if self.sim.gnss is not None:
+            header["gnss"] = {"rate_hz": self.sim.gnss.rate_hz,
+                              "lever_arm_b_m": self.sim.gnss.lever_arm_b_m.tolist(),
+                              "start_utc": endpoints.get("gnss_start_utc")}
+        with self._lock:
+            self._fh.write(json.dumps(header, default=str) + "\n")
+            self._fh.flush()
+
+    def event(self, name: str, t_device_s: float, fields: dict[str, Any]) -> None:
+        """Queue an event; it is written in device-time order with the next batch of samples."""
+        line = json.dumps({"type": "event", "event": name, "t_device_s": float(t_device_s), **fields})
+        with self._lock:
+            self._events.append((float(t_device_s), line))
+
+    def advance(self, t_device_s: float) -> None:
+        if t_device_s - self._written_until_s >= self.batch_device_s:
+            self._write_until(t_device_s)
+
+    def _write_until(self, t_end_s: float) -> None:
+        with self._lock:
+            if self.closed:
+                return
+            i_end = math.floor(t_end_s * self.rate_hz + 1e-9)
+            lines: list[tuple[float, int, str]] = []
+            if i_end >= self._next_i:
+                t = np.arange(self._next_i, i_end + 1) / self.rate_hz
+                cols = {k: v.tolist() for k, v in self.truth(t).items()}
+                names = list(cols)
+                for j, tj in enumerate(t.tolist()):
+                    row = {"type": "truth", **{k: cols[k][j] for k in names}}
+                    lines.append((tj, 0, json.dumps(row)))
+                self.rows_written += len(t)
+                self._next_i = i_end + 1
+            lines += [(te, 1, line) for te, line in self._events if te <= t_end_s]
+            self._events = [(te, line) for te, line in self._events if te > t_end_s]
+            lines.sort(key=lambda x: (x[0], x[1]))
+            if lines:
+                self._fh.write("".join(line + "\n" for _, _, line in lines))
+                self._fh.flush()
+            self._written_until_s = t_end_s
+
+    def close(self) -> None:
+        """Write what is due up to the loop's last tick, an `end` event, and close. Idempotent."""
+        if self.closed:
+            return
+        t_last = self.sim.last_t
+        self.event("end", t_last, {"rows": self.rows_written + max(0, math.floor(t_last * self.rate_hz + 1e-9)
+                                                                  + 1 - self._next_i)})
+        self._write_until(max(t_last, max((te for te, _ in self._events), default=t_last)))
+        with self._lock:
+            self.closed = True
+            self._fh.close()
+
+
 class Simulator:
     """`with Simulator(SimConfig(...)) as endpoints:` — the bench runs in a thread of this process.
 
-    `endpoints` is the dict the command prints: turntable and imu pty paths, and the CAN
-    accelerometer's interface/channel/bitrate/node_id.
+    `endpoints` is the dict the command prints: for the bench the turntable and imu pty paths and
+    the CAN accelerometer's interface/channel/bitrate/node_id; for the ship the imu; for the
+    vehicle the imu, the gnss pty and the UTC of device time 0 in its sentences.
     """
 
     def __init__(self, config: SimConfig | None = None, **overrides: Any) -> None:
@@ -121,12 +341,17 @@ class Simulator:
         self.imu: Any = None
         self.accelerometer: Any = None
         self.can_adapter: Any = None
+        self.gnss: Any = None
+        self.truth: TruthLog | None = None
         self._buses: list[Any] = []
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.failed = threading.Event()
         self.error: BaseException | None = None
         self.ticks = 0
+        self.last_t = 0.0
+        """Device time of the loop's last tick."""
+        self._clock_running = False
         self._endpoints: dict[str, Any] | None = None
 
     # -- building ---------------------------------------------------------------------------
@@ -148,10 +373,13 @@ class Simulator:
         from firmware_sim.devices.smc100 import Smc100
 
         cfg = self.config
-        streams = np.random.SeedSequence(cfg.seed).spawn(5)
-        self.world = build_world(cfg)
-        self.turntable = Smc100(self.world, address=cfg.stage_address, stall_move=cfg.faults.stage_stall)
-        self.devices.append(self.turntable)
+        streams = np.random.SeedSequence(cfg.seed).spawn(N_STREAMS)
+        self.world = build_world(cfg, streams[_STREAM_SWAY_PHASES])
+        if cfg.truth_log:  # first, so that a bad path is refused before any port opens
+            self.truth = TruthLog(cfg.truth_log, self, batch_device_s=TRUTH_BATCH_WALL_S * cfg.time_scale)
+        if cfg.scenario == "bench":
+            self.turntable = Smc100(self.world, address=cfg.stage_address, stall_move=cfg.faults.stage_stall)
+            self.devices.append(self.turntable)
 
         def make_imu_models(rate_hz: float) -> tuple[Any, Any]:
             # the same streams at every rate: a rate change rebuilds the models with the same
@@ -166,10 +394,24 @@ class Simulator:
             temperature_c=cfg.imu_temperature_c, make_models=make_imu_models, faults=cfg.faults,
             fault_seed=streams[_STREAM_IMU_FAULTS],
             backlog_bytes=max(64 * 1024, int(36 * 1000 * cfg.time_scale * CLIENT_STALL_WALL_S)),
+            connect_grace_s=CONNECT_GRACE_WALL_S * cfg.time_scale,
+            on_event=self.truth.event if self.truth is not None else None,
         )
         self.devices.append(self.imu)
-        if cfg.accel_enabled:
+        if cfg.scenario == "bench" and cfg.accel_enabled:
             self._build_can(streams)
+        if cfg.scenario == "vehicle":
+            from firmware_sim.devices.gnss import GnssReceiver
+
+            self.gnss = GnssReceiver(
+                self.world, rate_hz=cfg.gnss_rate_hz, lever_arm_b_m=cfg.gnss_lever_arm_m,
+                rng=np.random.default_rng(streams[_STREAM_GNSS]), faults=cfg.faults,
+                fault_seed=streams[_STREAM_GNSS_FAULTS], longitude_deg=cfg.longitude_deg,
+                start_utc=gnss_start(cfg),
+            )
+            self.devices.append(self.gnss)
+        if self.truth is not None:
+            self.devices.append(self.truth)  # last: it logs what the devices did in the same tick
 
     def _build_can(self, streams: list[np.random.SeedSequence]) -> None:
         import can
@@ -207,7 +449,15 @@ class Simulator:
     def endpoints(self) -> dict[str, Any]:
         """{"turntable": path, "imu": path, "can": {...}} as in docs/ARCHITECTURE.md."""
         cfg = self.config
-        out: dict[str, Any] = {"turntable": self.turntable.endpoint(), "imu": self.imu.endpoint()}
+        out: dict[str, Any] = {}
+        if self.turntable is not None:
+            out["turntable"] = self.turntable.endpoint()
+        out["imu"] = self.imu.endpoint()
+        if self.gnss is not None:
+            out["gnss"] = self.gnss.endpoint()
+            start = gnss_start(cfg)
+            fraction = f".{start.microsecond // 10_000:02d}" if start.microsecond else ""
+            out["gnss_start_utc"] = start.strftime("%Y-%m-%dT%H:%M:%S") + fraction + "Z"
         if self.accelerometer is not None:
             if self.can_adapter is not None:
                 can_ep = dict(self.can_adapter.endpoint())
@@ -228,6 +478,8 @@ class Simulator:
             self._close_all()
             raise
         self._endpoints = self.endpoints
+        if self.truth is not None:
+            self.truth.write_header(self._endpoints)
         self._thread = threading.Thread(target=self._run, name="firmware_sim-loop", daemon=True)
         self._thread.start()
         log.info("bench running: %s", self._endpoints)
@@ -247,18 +499,28 @@ class Simulator:
 
     def _run(self) -> None:
         self._can_powered = False
-        try:
-            # The sensor models' filters need scipy.signal, which takes 0.5-2 s to import: load it
-            # here, after the endpoints are out and before device time starts, so that the first
-            # samples are not a burst of catch-up (the devices are "booting" meanwhile).
-            import scipy.signal  # noqa: F401
+        # The sensor models' filters need scipy.signal, which takes 0.5-3 s to import on a loaded
+        # machine: load it in a helper thread, after the endpoints are out, and hold device time
+        # at 0 until it is there, so that the first samples are not a burst of catch-up. The loop
+        # runs meanwhile: the ports answer at once (a stage asked `1TS` says NOT REFERENCED).
+        warm = threading.Event()
 
-            self.clock.start()
+        def warm_up() -> None:
+            try:
+                import scipy.signal  # noqa: F401
+            finally:
+                warm.set()
+
+        threading.Thread(target=warm_up, name="firmware_sim-warm-up", daemon=True).start()
+        try:
             while not self._stop.is_set():
                 by_fd = {fd: d for d in self.devices if (fd := d.fileno()) is not None}
                 wfds = [p.fileno() for p in self._ports() if p.pending and not p.closed and p.connected]
                 readable, _, _ = select.select(list(by_fd), wfds, [], TICK_WALL_S)
-                t = self.clock.now()
+                if not self._clock_running and warm.is_set():
+                    self.clock.start()
+                    self._clock_running = True
+                t = self.clock.now() if self._clock_running else 0.0
                 for fd in readable:
                     device = by_fd[fd]
                     if device.fileno() == fd:
@@ -269,14 +531,15 @@ class Simulator:
                 for port in self._ports():
                     port.flush()
                 self.ticks += 1
+                self.last_t = t
         except BaseException as exc:  # report, do not die silently in a thread
             log.exception("simulator loop failed")
             self.error = exc
             self.failed.set()
 
     def now(self) -> float:
-        """Device seconds since start."""
-        return self.clock.now()
+        """Device seconds since start (0 until the loop has started device time)."""
+        return self.clock.now() if self._clock_running else 0.0
 
     def stop(self) -> None:
         """End the loop and release every pty, bus and temporary file. Idempotent."""
@@ -286,7 +549,10 @@ class Simulator:
         self._close_all()
 
     def _close_all(self) -> None:
-        for device in self.devices:
+        devices = list(self.devices)
+        if self.truth is not None and self.truth not in devices:  # _build failed before adding it
+            devices.append(self.truth)
+        for device in devices:
             try:
                 device.close()
             except Exception:  # noqa: BLE001 - closing must go on for the others
@@ -310,4 +576,7 @@ class Simulator:
 
     def run_for(self, device_s: float) -> None:
         """Sleep the calling thread for `device_s` of device time (a test helper)."""
+        deadline = time.monotonic() + 60.0
+        while not self._clock_running and time.monotonic() < deadline and not self.failed.is_set():
+            time.sleep(0.01)  # device time has not started yet (the loop is warming up)
         time.sleep(self.clock.wall_s(device_s))

@@ -5,6 +5,15 @@ numpy structured array (big-endian fields), and their CRC-32/MPEG-2 is computed 
 at once with a lookup table (one table step per two byte positions, vectorized over the
 messages). One message per sample at the configured rate in device time; the data come from
 the world's integrated truth through the sensor error models.
+
+Delivery to a client (what the truth log's time alignment rests on): sample k (k = 1, 2, … since
+power-on, sequence number (k − 1) mod 128) is produced whether or not anyone listens, and only a
+connected client receives it. When the IMU sees a new client it waits `connect_grace_s` of device
+time (the simulator passes 50 ms of wall time: pyserial flushes its input right after opening),
+drops anything stale, and starts on a frame boundary; `on_event("imu_connect", t, {"k0": …})`
+names the first sample that client gets. A client already there at power-on gets every sample
+from k = 1 with no grace. Rate changes and configuration mode, which move the k ↔ device-time
+map, are reported as `imu_grid` events (docs/simulator.md).
 """
 
 from __future__ import annotations
@@ -13,6 +22,8 @@ import logging
 import math
 import os
 import tempfile
+import termios
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -128,6 +139,19 @@ def unpack_messages(data: bytes) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # The IMU
 # ---------------------------------------------------------------------------------------------
+class _ImuPort(PtyPort):
+    """The IMU's pty, plus `discard()`: forget every byte not yet read (backlog and kernel queue)."""
+
+    def discard(self) -> None:
+        if self.closed:
+            return
+        self._pending.clear()
+        try:
+            termios.tcflush(self.master_fd, termios.TCOFLUSH)  # what the old client left unread
+        except termios.error:
+            pass
+
+
 class KvhImu(Device):
     """A format-A IMU on a pty. Samples k = 1, 2, … cover [(k−1)/rate, k/rate] from `epoch`.
 
@@ -141,7 +165,8 @@ class KvhImu(Device):
                  rate_hz: int = 1000, variant: str = DEFAULT_VARIANT, rot_format: str = "DELTA",
                  rot_units: str = "RAD", lever_arm_b_m: Any = (0.0, 0.0, 0.0), temperature_c: float = 25.0,
                  make_models: Any = None, faults: Any = None, fault_seed: Any = 0,
-                 backlog_bytes: int | None = None) -> None:
+                 backlog_bytes: int | None = None, connect_grace_s: float = 0.0,
+                 on_event: Callable[[str, float, dict[str, Any]], None] | None = None) -> None:
         if variant not in VARIANTS:
             raise ValueError(f"IMU variant {variant!r} unknown; use one of {', '.join(VARIANTS)}")
         if int(rate_hz) not in RATES_HZ:
@@ -166,6 +191,14 @@ class KvhImu(Device):
         self.disconnect = getattr(faults, "imu_disconnect", None)
 
         self._backlog_bytes = backlog_bytes
+        self.connect_grace_s = float(connect_grace_s)
+        self.on_event = on_event
+        self.produced = 0
+        """Samples produced since power-on (sent, unheard or silenced alike): the next is k = produced + 1."""
+        self.k_last_delivered = 0
+        self._link: str | None = None  # None until the first advance; then "down", "arming" or "up"
+        self._deliver_from_s = -math.inf
+        self._t_now = 0.0
         self.port = self._open_port()
         self._link_dir: str | None = None
         self._link_path: str | None = None
@@ -183,10 +216,19 @@ class KvhImu(Device):
         self.messages_sent = 0
         self._rx = bytearray()
 
-    def _open_port(self) -> PtyPort:
+    def _open_port(self) -> _ImuPort:
         if self._backlog_bytes is None:
-            return PtyPort("imu")
-        return PtyPort("imu", backlog_bytes=self._backlog_bytes)
+            return _ImuPort("imu")
+        return _ImuPort("imu", backlog_bytes=self._backlog_bytes)
+
+    def _event(self, name: str, **fields: Any) -> None:
+        if self.on_event is not None:
+            self.on_event(name, self._t_now, fields)
+
+    def _grid_event(self, reason: str) -> None:
+        """The next sample's number and device time (end of its interval): a new anchor of k ↔ t."""
+        self._event("imu_grid", reason=reason, k_next=self.produced + 1,
+                    t_next_device_s=self.epoch_s + (self.emitted + 1) / self.rate_hz, rate_hz=self.rate_hz)
 
     # -- Device surface ---------------------------------------------------------------------
     def fileno(self) -> int | None:
@@ -220,6 +262,9 @@ class KvhImu(Device):
             self._rx.clear()
 
     def advance(self, t_device_s: float) -> None:
+        self._t_now = t_device_s
+        if self._link is None:  # power-on: a client already there gets every sample, no grace
+            self._link = "arming" if self.port.connected else "down"
         self._disconnect_events(t_device_s)
         n_due = int(math.floor((t_device_s - self.epoch_s) * self.rate_hz + 1e-9)) - self.emitted
         if n_due <= 0:
@@ -244,7 +289,10 @@ class KvhImu(Device):
             self.port.write(f"{key},{answer}\n".encode("ascii"))
         elif line.startswith("="):
             if key == "CONFIG" and value in ("0", "1"):
+                leaving = self.config_mode and value == "0"
                 self.config_mode = value == "1"
+                if leaving:  # the grid moved on without samples: a new k ↔ t anchor
+                    self._grid_event("config_end")
             elif key == "DR" and value.isdigit() and int(value) in RATES_HZ:
                 self._set_rate(int(value), t)  # even to the same rate: the sample clock restarts
             elif key == "ROTFMT" and value in ("DELTA", "RATE"):
@@ -265,6 +313,7 @@ class KvhImu(Device):
             self.gyro_model, self.accel_model = self.make_models(rate_hz)
         self.rate_hz = rate_hz
         self.invalid_left = INVALID_AFTER_RATE_CHANGE
+        self._grid_event("rate")
 
     # -- data ---------------------------------------------------------------------------------
     def _emit(self, n: int) -> None:
@@ -294,36 +343,71 @@ class KvhImu(Device):
             self.invalid_left -= k
         seq = (self.sequence + np.arange(n)) & 0x7F
         self.sequence = (self.sequence + n) & 0x7F
+        k_abs = self.produced + 1 + np.arange(n)
+        self.produced += n
+        t_end = t0 + dt * np.arange(1, n + 1)
         keep = np.ones(n, dtype=bool)
         if self.silence is not None:
             start, duration = self.silence
-            t_end = t0 + dt * np.arange(1, n + 1)
             keep &= ~((t_end >= start - 1e-9) & (t_end < start + duration - 1e-9))
         if self._down_until_s is not None or self.port.closed:
             keep[:] = False
         if not keep.any():
             return
         data = pack_messages(gyro[keep], accel_g[keep], status[keep], seq[keep], self.temperature_c)
-        data = self._corrupt(data)
+        data, sizes = self._corrupt(data)
         self.messages_sent += int(keep.sum())
+        self._deliver(data, sizes, k_abs[keep], seq[keep], t_end[keep])
+
+    def _deliver(self, data: bytes, sizes: np.ndarray, k_abs: np.ndarray, seq: np.ndarray,
+                 t_end: np.ndarray) -> None:
+        """Hand the frames to a connected client, starting a new client on a frame boundary."""
+        if not self.port.connected:
+            if self._link == "up":
+                self._event("imu_disconnect", k_last=self.k_last_delivered, port=self.port.path)
+            if self._link != "down":
+                self.port.discard()
+            self._link = "down"
+            self.port.bytes_unheard += len(data)
+            return
+        if self._link == "down":  # a new client: let it finish opening (pyserial flushes its input)
+            self._link = "arming"
+            self._deliver_from_s = self._t_now + self.connect_grace_s
+        if self._link == "arming":
+            late = np.flatnonzero(t_end >= self._deliver_from_s - 1e-9)
+            if not len(late):
+                self.port.bytes_unheard += len(data)
+                return
+            i0 = int(late[0])
+            skip = int(sizes[:i0].sum())
+            self.port.bytes_unheard += skip
+            data = data[skip:]
+            self.port.discard()
+            self._link = "up"
+            self._event("imu_connect", k0=int(k_abs[i0]), sequence0=int(seq[i0]),
+                        t0_device_s=float(t_end[i0]), rate_hz=self.rate_hz, port=self.port.path)
+        self.k_last_delivered = int(k_abs[-1])
         self.port.write(data)
 
-    def _corrupt(self, data: bytes) -> bytes:
-        """Apply imu-crc-rate / imu-drop-byte-rate, drawing only from the fault stream."""
-        if not self.crc_rate and not self.drop_rate:
-            return data
+    def _corrupt(self, data: bytes) -> tuple[bytes, np.ndarray]:
+        """Apply imu-crc-rate / imu-drop-byte-rate, drawing only from the fault stream; returns the
+        bytes and each message's size on the line (36, or 35 with a dropped byte)."""
         n = len(data) // MESSAGE_BYTES
+        sizes = np.full(n, MESSAGE_BYTES, dtype=np.int64)
+        if not self.crc_rate and not self.drop_rate:
+            return data, sizes
         raw = np.frombuffer(data, dtype=np.uint8).reshape(n, MESSAGE_BYTES).copy()
         if self.crc_rate:
             bad = self.fault_rng.random(n) < self.crc_rate
             raw[bad, 35] ^= 0x01
         if not self.drop_rate:
-            return raw.tobytes()
+            return raw.tobytes(), sizes
         drop = self.fault_rng.random(n) < self.drop_rate
         which = self.fault_rng.integers(0, MESSAGE_BYTES, n)
         mask = np.ones((n, MESSAGE_BYTES), dtype=bool)
         mask[np.nonzero(drop)[0], which[drop]] = False
-        return raw[mask].tobytes()
+        sizes -= drop
+        return raw[mask].tobytes(), sizes
 
     def _disconnect_events(self, t: float) -> None:
         if self.disconnect is None:
@@ -331,11 +415,16 @@ class KvhImu(Device):
         at_s, down_s = self.disconnect
         if self._down_until_s is None and not self.port.closed and at_s <= t < at_s + down_s:
             log.info("imu: port %s disconnected at t=%.3f s for %.3f s", self.port.path, t, down_s)
+            if self._link == "up":
+                self._event("imu_disconnect", k_last=self.k_last_delivered, port=self.port.path)
+            self._link = "down"
             self.port.close()
             self._down_until_s = at_s + down_s
         elif self._down_until_s is not None and t >= self._down_until_s:
             self._down_until_s = None
             self.port = self._open_port()
+            self._link = "down"
+            self._event("imu_port", port=self.port.path, link=self._link_path)
             tmp = self._link_path + ".new"  # type: ignore[operator]
             os.symlink(self.port.path, tmp)
             os.replace(tmp, self._link_path)  # type: ignore[arg-type]
