@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import time
 import tomllib
 from dataclasses import dataclass, field
@@ -41,10 +42,10 @@ import numpy as np
 from northfinder.align.gnss_ins import GnssAlignConfig, GnssAlignResult, GnssSeries, ImuSeries, align_gnss
 from northfinder.align.small_angle import align_gnss_small_angle
 from northfinder.codecs.kvh import KvhDecoder
-from northfinder.codecs.nmea import GnssFix, LocalEnu, NmeaDecoder, fixes_to_arrays
+from northfinder.codecs.nmea import GnssFix, LocalEnu, checksum, fixes_to_arrays
 from northfinder.constants import wrap_deg_180
 from northfinder.errors import ConfigError, InputError
-from northfinder.rundir import CONFIG, EVENTS, IMU_RAW, RESULT, RunDir
+from northfinder.rundir import CONFIG, EVENTS, IMU_RAW, RESULT, RunDir, jsonable
 
 KIND = "align-gnss"
 SCHEMA = "northfinder.align-gnss/1"
@@ -217,6 +218,26 @@ def _chunks(raw: bytes, total: np.ndarray) -> list[bytes]:
     return [raw[a:b] for a, b in zip(starts.tolist(), ends.tolist(), strict=True)]
 
 
+_GGA = re.compile(rb"\$(..GGA,(\d\d)(\d\d)(\d\d(?:\.\d+)?),[^*\r\n$]*)\*([0-9A-Fa-f]{2})")
+
+
+def gga_ends(nmea_raw: bytes, utc_ref_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(byte offset just past each good GGA, its UTC − utc_ref_s): the first sentence of each epoch.
+
+    GGA carries the time of day only: the day comes from `utc_ref_s` (the nearest one), so an
+    epoch is placed within ±12 h of the reference. Checksums are verified (a corrupted time
+    would fake an early arrival)."""
+    ends, times = [], []
+    ref_sod = utc_ref_s % 86400.0
+    for m in _GGA.finditer(nmea_raw):
+        if checksum(m.group(1)) != int(m.group(5), 16):
+            continue
+        sod = int(m.group(2)) * 3600 + int(m.group(3)) * 60 + float(m.group(4))
+        ends.append(m.end())
+        times.append((sod - ref_sod + 43200.0) % 86400.0 - 43200.0)
+    return np.asarray(ends, dtype=np.int64), np.asarray(times, dtype=float)
+
+
 def host_offsets(
     imu_raw: bytes,
     imu_stamps,
@@ -226,14 +247,16 @@ def host_offsets(
     utc_ref_s: float,
     time_scale: float = 1.0,
     imu_last_index: int | None = None,
-    gnss_fixes: int | None = None,
+    gnss_last_s: float | None = None,
 ) -> dict[str, Any]:
     """IMU index 0's start and GNSS time zero on one clock, from host receive stamps (lower envelope).
 
-    A sample with index i ends at off_imu + (i+1)/rate and arrives later; a fix with UTC u arrives
-    after off_gnss + u. Host times are scaled by `time_scale` (a simulator running K× faster) so
-    that the result is in device seconds. Returns t0_s = off_imu − off_gnss: the start of sample 0
-    in GNSS time (UTC − utc_ref_s), and the spread of the arrival delays as a quality figure.
+    A sample with index i ends at off_imu + (i+1)/rate and arrives later; the GGA of an epoch at
+    GNSS time u (UTC − utc_ref_s) arrives after off_gnss + u. Host times are scaled by `time_scale`
+    (a simulator running K× faster) so the offsets are in device seconds. Returns t0_s =
+    off_imu − off_gnss, the start of sample 0 in GNSS time, and the median arrival delays (how
+    much the minimum had to choose from). Only the window's samples (≤ imu_last_index) and
+    epochs (≤ gnss_last_s) count.
     """
     h_i, b_i = imu_stamps
     h_g, b_g = gnss_stamps
@@ -248,24 +271,23 @@ def host_offsets(
             if imu_last_index is not None and last > imu_last_index:
                 break
             imu_d.append(h * time_scale - (last + 1) / rate_hz)
-    ndec = NmeaDecoder()
-    gnss_d = []
-    n_fix = 0
-    for h, chunk in zip(h_g, _chunks(nmea_raw, b_g), strict=True):
-        for fix in ndec.feed(chunk):
-            n_fix += 1
-            if gnss_fixes is not None and n_fix > gnss_fixes:
-                break
-            gnss_d.append(h * time_scale - (fix.time_s - utc_ref_s))
-    if not imu_d or not gnss_d:
-        raise InputError("host time alignment: no IMU frame or no GNSS fix in the receive stamps")
+    ends, u = gga_ends(nmea_raw, utc_ref_s)
+    if gnss_last_s is not None:
+        keep = u <= gnss_last_s + 1e-6
+        ends, u = ends[keep], u[keep]
+    # the chunk that completed each GGA: the first whose running byte total reaches its end
+    j = np.searchsorted(b_g, ends, side="left")
+    ok = j < len(h_g)
+    gnss_d = h_g[j[ok]] * time_scale - u[ok]
+    if not imu_d or not len(gnss_d):
+        raise InputError("host time alignment: no IMU frame or no GNSS epoch in the receive stamps")
     off_i, off_g = float(np.min(imu_d)), float(np.min(gnss_d))
     return {
         "t0_s": off_i - off_g,
         "imu_delay_p50_s": float(np.median(imu_d) - off_i),
         "gnss_delay_p50_s": float(np.median(gnss_d) - off_g),
         "imu_chunks": len(imu_d),
-        "gnss_fixes": len(gnss_d),
+        "gnss_epochs": int(len(gnss_d)),
     }
 
 
@@ -274,18 +296,30 @@ def host_offsets(
 # ---------------------------------------------------------------------------------------------
 @dataclass
 class TruthLog:
-    """What northfinder needs from firmware-sim's truth log: k0, the site, truth against time."""
+    """What northfinder needs from firmware-sim's truth log (docs/simulator.md): the device time of
+    this client's first IMU sample, the ENU origin, the antenna lever arm, and truth against time."""
 
     header: dict[str, Any]
     imu_k0: int | None
+    """Absolute sample number k (1, 2, … since power-on) of the first frame this client received."""
     imu_rate_hz: float | None
+    grid_events: int
+    """imu_grid events after the connect (a rate change or configuration mode moved the k ↔ time map)."""
     t_s: np.ndarray
     heading_deg: np.ndarray  # unwrapped
     pitch_deg: np.ndarray
     roll_deg: np.ndarray
-    pos_enu_m: np.ndarray
+    pos_enu_m: np.ndarray  # of the IMU, about `origin`
     lever_arm_m: list[float] | None
     origin: tuple[float, float, float] | None
+
+    @property
+    def imu_t0_s(self) -> float | None:
+        """Device time at which the first received sample's interval starts: sample k covers
+        [(k − 1)/rate, k/rate] (docs/simulator.md)."""
+        if self.imu_k0 is None or not self.imu_rate_hz:
+            return None
+        return (self.imu_k0 - 1) / self.imu_rate_hz
 
     def at(self, t_s: float | np.ndarray, what: str) -> np.ndarray:
         """Linear interpolation of a truth column at device time(s)."""
@@ -299,17 +333,12 @@ class TruthLog:
         return np.mod(self.at(t_s, "heading_deg"), 360.0)
 
 
-def _first(d: dict[str, Any], *keys: str) -> Any:
-    for k in keys:
-        if k in d and d[k] is not None:
-            return d[k]
-    return None
-
-
 def read_truth_log(path: Path) -> TruthLog:
-    """Parse the truth log; InputError naming the file if it has no samples or no IMU connect event."""
+    """Parse firmware-sim's truth log (JSON lines: a header, `truth` rows, `event`s); a torn last
+    line is ignored. InputError naming the file if it is missing or has no truth rows."""
     header: dict[str, Any] = {}
-    k0 = rate = None
+    k0 = None
+    grid = 0
     rows: list[tuple] = []
     try:
         lines = path.read_text(encoding="utf-8").splitlines()
@@ -320,53 +349,43 @@ def read_truth_log(path: Path) -> TruthLog:
             rec = json.loads(line)
         except json.JSONDecodeError:
             continue
-        if not isinstance(rec, dict):
-            continue
-        kind = str(_first(rec, "event", "type", "kind") or "")
-        if not header and ("config" in rec or kind == "header"):
-            header = rec
-            continue
-        if "k0" in rec and "imu" in (kind + str(rec.get("device", ""))).lower() and k0 is None:
-            k0 = int(rec["k0"])
-            rate = _first(rec, "rate_hz", "imu_rate_hz")
-            continue
-        t = _first(rec, "t_device_s", "t_s")
-        h = _first(rec, "heading_deg")
-        if t is None or h is None:
-            continue
-        pos = _first(rec, "pos_enu_m", "imu_pos_enu_m", "position_enu_m")
-        rows.append(
-            (
-                float(t),
-                float(h),
-                float(_first(rec, "pitch_deg") or 0.0),
-                float(_first(rec, "roll_deg") or 0.0),
-                pos if pos is not None else (np.nan,) * 3,
+        kind = rec.get("type") if isinstance(rec, dict) else None
+        if kind == "truth":
+            rows.append(
+                (
+                    rec["t_device_s"],
+                    rec["heading_deg"],
+                    rec["pitch_deg"],
+                    rec["roll_deg"],
+                    rec["imu_pos_enu_m"],
+                )
             )
-        )
+        elif kind == "header" and not header:
+            header = rec
+        elif kind == "event" and rec.get("event") == "imu_connect" and k0 is None:
+            k0 = int(rec["k0"])
+        elif kind == "event" and rec.get("event") == "imu_grid" and k0 is not None:
+            grid += 1
     if not rows:
-        raise InputError(f"{path}: the truth log has no truth samples")
+        raise InputError(f"{path}: the truth log has no truth rows")
     rows.sort(key=lambda r: r[0])
-    t = np.array([r[0] for r in rows])
-    cfg = header.get("config", header) if isinstance(header.get("config", header), dict) else {}
-    la = _first(cfg, "gnss_lever_arm_m", "lever_arm_m")
-    lat, lon, h0 = _first(cfg, "latitude_deg"), _first(cfg, "longitude_deg"), _first(cfg, "height_m")
-    origin = (
-        (float(lat), float(lon if lon is not None else 0.0), float(h0 or 0.0)) if lat is not None else None
-    )
-    if rate is None:
-        rate = _first(cfg, "imu_rate_hz")
+    origin = header.get("enu_origin")
+    la = (header.get("gnss") or {}).get("lever_arm_b_m")
+    rate = (header.get("imu") or {}).get("rate_hz")
     return TruthLog(
         header=header,
         imu_k0=k0,
         imu_rate_hz=float(rate) if rate is not None else None,
-        t_s=t,
+        grid_events=grid,
+        t_s=np.array([r[0] for r in rows], dtype=float),
         heading_deg=np.rad2deg(np.unwrap(np.deg2rad([r[1] for r in rows]))),
-        pitch_deg=np.array([r[2] for r in rows]),
-        roll_deg=np.array([r[3] for r in rows]),
+        pitch_deg=np.array([r[2] for r in rows], dtype=float),
+        roll_deg=np.array([r[3] for r in rows], dtype=float),
         pos_enu_m=np.array([r[4] for r in rows], dtype=float).reshape(-1, 3),
         lever_arm_m=[float(v) for v in la] if la is not None else None,
-        origin=origin,
+        origin=(float(origin["latitude_deg"]), float(origin["longitude_deg"]), float(origin["height_m"]))
+        if origin
+        else None,
     )
 
 
@@ -586,7 +605,7 @@ def _select(block: Any, first_index: int, last_index: int) -> Any:
 
 
 def time_alignment(
-    rd: RunDir, start: dict[str, Any], end: dict[str, Any], truth: TruthLog | None
+    rd: RunDir, start: dict[str, Any], end: dict[str, Any], truth: TruthLog | None, gnss_last_s: float | None
 ) -> tuple[float, dict]:
     """Start of IMU sample index 0 in GNSS time: exact from the truth log's k0 on the simulator,
     else from the host receive stamps; the host estimate is also reported on the simulator."""
@@ -603,12 +622,21 @@ def time_alignment(
             float(end["utc_ref_s"]),
             float(start.get("time_scale", 1.0)),
             int(end["imu"]["last_index"]),
-            int(end["gnss"]["fixes"]),
+            gnss_last_s,
         )
     except (InputError, FileNotFoundError):
         host = None
-    if truth is not None and truth.imu_k0 is not None:
-        t0 = truth.imu_k0 / rate + float(start.get("k0_offset_samples", 0)) / rate
+    if truth is not None and truth.imu_t0_s is not None:
+        if truth.grid_events:
+            raise InputError(
+                f"{rd.path}: the simulated IMU's sample grid moved after this client connected "
+                "(imu_grid event in the truth log); its samples no longer map to device time"
+            )
+        if truth.imu_rate_hz != rate:
+            raise InputError(
+                f"{rd.path}: the truth log's IMU rate {truth.imu_rate_hz:g} Hz is not the run's {rate:g} Hz"
+            )
+        t0 = truth.imu_t0_s
         info = {"method": "truth-log", "imu_k0": truth.imu_k0, "t0_s": t0}
         if host is not None:
             info["host_estimate"] = host
@@ -637,7 +665,8 @@ def result_from_run(
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The result of a run from its window's data (live: the drivers' arrays; replay: decoded logs)."""
     truth = load_truth(rd, start)
-    t0, info = time_alignment(rd, start, end, truth)
+    last = fixes[-1].time_s - float(end["utc_ref_s"]) if fixes else None
+    t0, info = time_alignment(rd, start, end, truth, last)
     return compute_gnss_result(imu_block, fixes, start, end, truth, t0, info, complete=complete)
 
 
@@ -662,13 +691,7 @@ def replay_gnss_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
     complete = bool(end.get("complete"))
     block, fixes = window_from_logs(rd, start, end)
     result, _ = result_from_run(rd, block, fixes, start, end, complete)
-    return json.loads(json.dumps(_plain(result))), complete
-
-
-def _plain(obj: Any) -> Any:
-    from northfinder.rundir import _jsonable
-
-    return _jsonable(obj)
+    return json.loads(json.dumps(jsonable(result))), complete
 
 
 # ---------------------------------------------------------------------------------------------

@@ -103,14 +103,20 @@ class VehicleSimProcess(SimulatorProcess):
     (the base class expects a turntable)."""
 
     def start(self) -> dict[str, Any]:
+        import os
         import subprocess
 
+        # firmware_sim sits next to the northfinder package: findable whatever the working directory
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        root = str(Path(__file__).resolve().parents[2])
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
         try:
             self.proc = subprocess.Popen(
                 self.settings.argv(),
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
                 stdin=subprocess.DEVNULL,
+                env=env,
                 start_new_session=True,
             )
         except OSError as exc:
@@ -190,7 +196,18 @@ class _View:
         self.progress.stop()
 
 
-def acquire_and_align(
+@dataclass
+class Window:
+    """What one acquisition read: the IMU samples and fixes of the window and the run's events."""
+
+    block: Any
+    fixes: list[Any]
+    start: dict[str, Any]
+    end: dict[str, Any]
+    stop: StopFlag
+
+
+def acquire(
     rd: RunDir,
     *,
     imu_port: str,
@@ -207,12 +224,11 @@ def acquire_and_align(
     gnss_start_utc: str | None = None,
     time_scale: float = 1.0,
     gnss_latency_s: float = 0.0,
-    json_path: str | None = None,
-    report: bool = True,
     progress: bool = True,
     config_extra: dict[str, Any] | None = None,
-) -> dict[str, Any]:
-    """Read both devices for `duration_s` device seconds, save the run directory, return the result."""
+) -> Window:
+    """Read both devices for `duration_s` device seconds; the raw logs, stamps and events are saved
+    in the run directory. A signal ends the reading early (`Window.stop` says which)."""
     from northfinder.drivers.gnss import Gnss
     from northfinder.drivers.imu import Imu
 
@@ -271,7 +287,7 @@ def acquire_and_align(
         rd.log_event(start)
         rate = imu.rate_hz
         n_total = int(round(duration_s * rate))
-        chunk = max(1, int(rate // 10))
+        chunk = max(1, int(rate))  # 1 s of device time per read: few wakeups at a large time scale
         first = last = None
         last_fix = None
         with _View(duration_s, progress) as view:
@@ -350,15 +366,22 @@ def acquire_and_align(
         "gnss": {"fixes": len(fixes), "stats": gnss_stats.as_dict()},
     }
     rd.log_event(end)
+    return Window(block, fixes, start, end, stop)
+
+
+def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool = True) -> dict[str, Any]:
+    """Align on the window (the function replay uses), save result.json (+ --json) and report.png.
+    A window cut short by a signal is aligned if it can be, then RunAborted (exit 130/143)."""
+    complete = not w.stop
     try:
-        result, hist = gr.result_from_run(rd, block, fixes, start, end, complete)
+        result, hist = gr.result_from_run(rd, w.block, w.fixes, w.start, w.end, complete)
     except InputError as exc:
         if complete:
             raise
-        raise _abort_or(stop, rd, str(exc)) from None
+        raise _abort_or(w.stop, rd, str(exc)) from None
     gr.save_result(rd, result, hist, json_path, report)
     if not complete:
-        raise _abort_or(stop, rd, f"the result of the {result['duration_device_s']:.1f} s read is saved")
+        raise _abort_or(w.stop, rd, f"the result of the {result['duration_device_s']:.1f} s read is saved")
     return result
 
 
