@@ -132,38 +132,6 @@ def settle_reached(z_windows_dph: list[np.ndarray], ratio: float, rest_dph: floa
     return abs(float(np.mean(b)) - float(np.mean(a))) <= 4.0 * noise + 1e-12
 
 
-@dataclass
-class ClockSync:
-    """One IMU sample index and one accelerometer counter taken at the same device instant.
-
-    The two streams arrive over different links and may lag the stage by different amounts
-    (at a high time scale a fraction of a wall second is seconds of device time), so the
-    accelerometer's dwell is cut by device time, not by arrival: counter
-    c = c_ref + (i − i_ref)·rate_accel/rate_imu for IMU sample index i.
-    """
-
-    imu_index: int
-    accel_counter: int
-    imu_rate_hz: float
-    accel_rate_hz: float
-
-    def accel_counter_at(self, imu_index: int) -> int:
-        return self.accel_counter + int(
-            np.ceil((imu_index - self.imu_index) * self.accel_rate_hz / self.imu_rate_hz)
-        )
-
-
-@dataclass
-class _AccelSpan:
-    """Accelerometer samples of one dwell, cut by counter."""
-
-    counter: np.ndarray
-    accel_g: np.ndarray
-    first_counter: int
-    """The span asked for (device time), whether or not its edge samples arrived."""
-    last_counter: int
-
-
 class Sequencer:
     """Runs the position plan on a turntable, an IMU and an accelerometer (drivers, opened)."""
 
@@ -197,7 +165,6 @@ class Sequencer:
         self.move_timeout_s = move_timeout_s
         self.positions: list[PositionMeans] = []
         self._plan: list[float] = []
-        self.clock = ClockSync(0, 0, 1.0, 1.0)
 
     # -- helpers -----------------------------------------------------------------------------
     def _event(self, event: dict[str, Any]) -> None:
@@ -298,51 +265,32 @@ class Sequencer:
                 return SettleResult(k * n_win / rate, True, k)
         return SettleResult(max_windows * n_win / rate, False, max_windows)
 
-    def sync_clocks(self) -> ClockSync:
-        """Start the accelerometer node (NMT) and pair the next IMU sample with its first sample.
+    def _start_accelerometer(self, quiet_s: float = 0.1, timeout_s: float = 10.0) -> None:
+        """NMT start, once the CAN link has delivered everything sent before the last NMT stop.
 
-        The node sends nothing before NMT start (or whatever it sent is dropped here), so its first
-        sample after the start and the IMU's next sample belong to the same instant within a
-        sample or two; done before any load, when neither link lags.
+        The node was stopped before the move, so once nothing more arrives (host time: this only
+        drains a link that lags) the first sample after the start is taken after the settle.
         """
-        self.imu.discard_pending()
-        self.accel.discard_pending()
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.accel.discard_pending() == 0:
+                time.sleep(quiet_s)
+                if self.accel.discard_pending() == 0:
+                    break
+            else:
+                time.sleep(0.02)
         self.accel.start_node()
-        imu_index = int(np.asarray(self._read_imu(1).sample_index)[0])
-        counter = int(np.asarray(self._read_accel(1).counter)[0])
-        self.clock = ClockSync(imu_index, counter, float(self.imu.rate_hz), self.accel_rate_hz)
-        self._event({"event": "clock_sync", "imu_index": imu_index, "accel_counter": counter})
-        return self.clock
 
     def _read_accel(self, n: int) -> Any:
         return self.accel.read(n, timeout_s=max(5.0, 2.0 * n / self.accel_rate_hz + 5.0))
 
-    def _accel_span(self, c0: int, c1: int) -> Any:
-        """The accelerometer samples with counters c0…c1 (device time), reading past late arrivals."""
-        kept = []
-        last = None
-        while last is None or last < c1:
-            self._check_stop()
-            want = max(1, c1 - last) if last is not None else max(1, c1 - c0 + 1)
-            block = self._read_accel(min(want, max(1, int(self.accel_rate_hz))))
-            counter = np.asarray(block.counter)
-            last = int(counter[-1])
-            sel = (counter >= c0) & (counter <= c1)
-            if sel.any():
-                kept.append((counter[sel], np.asarray(block.accel_g)[sel]))
-        if not kept:
-            raise DeviceError(
-                "accelerometer",
-                getattr(self.accel, "port", None),
-                f"no samples in counters {c0}…{c1}; the node's counter jumped — check the bus",
-            )
-        return _AccelSpan(
-            np.concatenate([k[0] for k in kept]), np.concatenate([k[1] for k in kept], axis=0), c0, c1
-        )
-
     def dwell(self, index: int, target_deg: float) -> tuple[list[Any], Any]:
         """Collect dwell_s·rate IMU samples right after settling (in chunks, reporting live
-        statistics), then the accelerometer samples of the same device-time span."""
+        statistics), then the accelerometer's first dwell_s·rate samples after its NMT start.
+
+        The two dwells need not coincide: both lie inside the same rest (the accelerometer starts
+        after the settle showed in the IMU data, and the next move is commanded only after both
+        dwells have arrived), so a CAN link that lags, or loses frames, shifts nothing."""
         cfg = self.run_cfg
         rate = float(self.imu.rate_hz)
         n_total = max(2, int(round(cfg.dwell_s * rate)))
@@ -373,16 +321,14 @@ class Sequencer:
                     gyro_std_of_mean_dph=np.sqrt(var / got).tolist(),
                 )
             )
-        i0 = int(np.asarray(blocks[0].sample_index)[0])
-        c0 = self.clock.accel_counter_at(i0)
+        self._check_stop()
         n_accel = max(2, int(round(cfg.dwell_s * self.accel_rate_hz)))
-        return blocks, self._accel_span(c0, c0 + n_accel - 1)
+        return blocks, self._read_accel(n_accel)
 
     # -- the sequence ------------------------------------------------------------------------
     def run(self) -> list[PositionMeans]:
         """Measure every position of the plan and return the per-position means."""
         self.on_progress(Progress(0, self.run_cfg.positions, "reference"))
-        self.sync_clocks()
         self.turntable.ensure_referenced(allow_home=self.allow_home)
         self._check_stop()
         self._plan = self.plan_deg()
@@ -390,10 +336,12 @@ class Sequencer:
         for i, target in enumerate(self._plan):
             self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
             here = float(self.turntable.position_deg())
+            self.accel.stop_node()  # quiet during the move; started again after the settle
             self.imu.discard_pending()  # what is left is from before the move command
             self._move(target)
             self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
             settle = self.settle(expect_motion=abs(target - here) >= MIN_VISIBLE_MOVE_DEG)
+            self._start_accelerometer()
             blocks, accel_block = self.dwell(i, target)
             self._check_stop()
             angle_deg = float(self.turntable.position_deg())
@@ -412,6 +360,7 @@ class Sequencer:
                     means=means,
                 )
             )
+        self.accel.stop_node()
         if self.run_cfg.return_to_start:
             self.on_progress(Progress(n, n, "return", self._plan[0]))
             self._move(self._plan[0])
@@ -446,7 +395,7 @@ class Sequencer:
         gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0)
         counter = np.asarray(accel_block.counter)
         imu_lost = int(idx[-1] - idx[0] + 1 - idx.size)
-        accel_lost = int(accel_block.last_counter - accel_block.first_counter + 1 - counter.size)
+        accel_lost = int(accel_block.lost_samples)
         means = position_means(
             angle_deg, gyro, np.asarray(accel_block.accel_g), imu_lost, accel_lost, float(self.imu.rate_hz)
         )
@@ -465,8 +414,8 @@ class Sequencer:
                     "lost": imu_lost,
                 },
                 "accel": {
-                    "first_counter": int(accel_block.first_counter),
-                    "last_counter": int(accel_block.last_counter),
+                    "first_counter": int(counter[0]),
+                    "last_counter": int(counter[-1]),
                     "samples": int(counter.size),
                     "lost": accel_lost,
                 },

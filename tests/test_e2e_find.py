@@ -98,7 +98,7 @@ def _check_accuracy(result: dict, truth: dict) -> None:
     assert result["complete"] and result["positions_measured"] == POSITIONS
     for p in result["positions"]:
         assert p["samples"] == int(DWELL_S * 1000)
-        assert p["accel_samples"] + p["accel_lost_samples"] == int(DWELL_S * ACCEL_RATE_HZ)
+        assert p["accel_samples"] == int(DWELL_S * ACCEL_RATE_HZ)
         assert p["accel_lost_samples"] <= 0.1 * DWELL_S * ACCEL_RATE_HZ  # a loaded host may drop a few
     limit = _noise_limit_deg(truth, result["duration_device_s"])
     sigma = result["heading_std_deg"]

@@ -1,4 +1,4 @@
-"""The settle rule, the device-time pairing of the two sensor clocks, and the shared mean function."""
+"""The settle rule and the one mean function that live runs and replay share."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from northfinder.config import RunConfig
 from northfinder.rundir import position_means
-from northfinder.sequencer import ClockSync, settle_reached
+from northfinder.sequencer import settle_reached
 
 RATE_HZ = 1000.0
 WINDOW = 200  # 0.2 s
@@ -52,14 +52,6 @@ def test_a_steady_slew_is_not_settled():
     assert not settle_reached([slew[:WINDOW], slew[WINDOW:]], cfg.settle_ratio, cfg.settle_rest_dph)
     rest = 9.6 + rng.normal(0.0, 3.8, 2 * WINDOW)
     assert settle_reached([rest[:WINDOW], rest[WINDOW:]], cfg.settle_ratio, cfg.settle_rest_dph)
-
-
-def test_clock_sync_maps_imu_samples_to_accelerometer_counters():
-    sync = ClockSync(imu_index=5000, accel_counter=17, imu_rate_hz=1000.0, accel_rate_hz=100.0)
-    assert sync.accel_counter_at(5000) == 17
-    assert sync.accel_counter_at(5010) == 18
-    assert sync.accel_counter_at(5001) == 18  # the first accelerometer sample at or after the IMU one
-    assert sync.accel_counter_at(35000) == 17 + 3000
 
 
 def test_position_means_do_not_depend_on_memory_layout():
