@@ -86,6 +86,11 @@ def test_command_prints_endpoints_runs_and_exits_0_leaving_nothing(sig):
     (["--latitude", "123"], "latitude_deg"),
     (["--time-scale", "0"], "time_scale"),
     (["--grade", "unobtainium"], "grade"),
+    (["--sway", "roll=abc"], "--sway roll=abc"),
+    (["--scenario", "boat"], "scenario"),
+    (["--lever-arm", "1,2"], "--lever-arm 1,2"),
+    (["--imu-rate", "333"], "imu_rate_hz"),
+    (["--scenario", "vehicle", "--fault", "gnss-nofix=5"], "gnss-nofix"),
 ])
 def test_user_mistakes_give_one_line_and_exit_2(args, words):
     proc = _run(*args)
