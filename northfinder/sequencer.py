@@ -269,7 +269,7 @@ class Sequencer:
         """NMT start, once the CAN link has delivered everything sent before the last NMT stop.
 
         The node was stopped before the move, so once nothing more arrives (host time: this only
-        drains a link that lags) the first sample after the start is taken after the settle.
+        drains a link that lags) every sample that follows was taken after the start.
         """
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
@@ -284,13 +284,15 @@ class Sequencer:
     def _read_accel(self, n: int) -> Any:
         return self.accel.read(n, timeout_s=max(5.0, 2.0 * n / self.accel_rate_hz + 5.0))
 
-    def dwell(self, index: int, target_deg: float) -> tuple[list[Any], Any]:
+    def dwell(self, index: int, target_deg: float, settle_s: float = 0.0) -> tuple[list[Any], Any]:
         """Collect dwell_s·rate IMU samples right after settling (in chunks, reporting live
-        statistics), then the accelerometer's first dwell_s·rate samples after its NMT start.
+        statistics), then dwell_s·rate accelerometer samples: those after its NMT start at READY,
+        less the first settle_s·rate of them.
 
-        The two dwells need not coincide: both lie inside the same rest (the accelerometer starts
-        after the settle showed in the IMU data, and the next move is commanded only after both
-        dwells have arrived), so a CAN link that lags, or loses frames, shifts nothing."""
+        The two dwells need not coincide: both lie inside the same rest (the accelerometer was
+        started at or after READY in device time, READY + settle_s is at or after the settle the
+        IMU showed, and the next move is commanded only after both dwells have arrived), so a CAN
+        link that lags, or loses frames, shifts nothing."""
         cfg = self.run_cfg
         rate = float(self.imu.rate_hz)
         n_total = max(2, int(round(cfg.dwell_s * rate)))
@@ -322,6 +324,9 @@ class Sequencer:
                 )
             )
         self._check_stop()
+        skip = int(np.ceil(settle_s * self.accel_rate_hz))
+        if skip > 0:
+            self._read_accel(skip)
         n_accel = max(2, int(round(cfg.dwell_s * self.accel_rate_hz)))
         return blocks, self._read_accel(n_accel)
 
@@ -340,9 +345,9 @@ class Sequencer:
             self.imu.discard_pending()  # what is left is from before the move command
             self._move(target)
             self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
+            self._start_accelerometer()  # at READY: its first samples are skipped by the settle time
             settle = self.settle(expect_motion=abs(target - here) >= MIN_VISIBLE_MOVE_DEG)
-            self._start_accelerometer()
-            blocks, accel_block = self.dwell(i, target)
+            blocks, accel_block = self.dwell(i, target, settle.settle_s)
             self._check_stop()
             angle_deg = float(self.turntable.position_deg())
             self._flush_logs()

@@ -12,6 +12,7 @@ import contextlib
 import math
 import signal
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
@@ -361,6 +362,9 @@ def run(args: argparse.Namespace) -> int:
         cfg = _apply_overrides(bench.load(args.config), args)
         bench.require_ports(cfg)
     t_wall = time.monotonic()
+    if not args.no_report:
+        # matplotlib takes a second or two to import: do it while the devices are opened and homed.
+        threading.Thread(target=_preload_matplotlib, name="preload-matplotlib", daemon=True).start()
     with contextlib.ExitStack() as stack:
         if settings is not None:
             endpoints = stack.enter_context(SimulatorProcess(settings))
@@ -370,15 +374,26 @@ def run(args: argparse.Namespace) -> int:
             rundir,
             settings=settings,
             json_path=args.json,
-            report=not args.no_report,
+            report=False,  # drawn below, once the simulator no longer competes for the CPU
             # firmware-sim's slcan adapter is a pty: no USB adapter reset to wait 2 s for.
             can_kwargs={"sleep_after_open": 0.05}
             if settings and cfg.accelerometer.interface == "slcan"
             else None,
         )
+    if not args.no_report:
+        from northfinder.report import write_report
+
+        write_report(result, rundir.report_path)
     print_summary(result, run_dir=rundir.path)
     print(f"wall time {time.monotonic() - t_wall:.1f} s (measurement and report)", file=sys.stderr)
     return 0
+
+
+def _preload_matplotlib() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot  # noqa: F401
 
 
 def _sim_config_file(user_toml: str | None, rundir: RunDir) -> tuple[Path, float]:
