@@ -1,0 +1,312 @@
+"""`northfinder align --mode gnss` end to end: firmware-sim's vehicle (IMU pty + GNSS pty) in a
+subprocess, the run directory, replay bit for bit, bad NMEA, Ctrl-C, user mistakes; and the host
+receive-stamp time alignment against an exact identity.
+
+Tolerances: the heading error against 3× the filter's own 1σ; the lever arm within 0.1 m and the
+position within 2 m (the issue's bounds); NMEA fault counts within 5σ of the binomial count the
+injected rates give.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from northfinder.align import gnss_run as gr
+from northfinder.cli import main
+from northfinder.cli.replay import differences
+from northfinder.rundir import EVENTS, RESULT
+
+ROOT = Path(__file__).resolve().parents[1]
+TIME_SCALE = 20.0
+"""firmware-sim's vehicle keeps up with 20× real time on this shared 2-core host (40× fell behind)."""
+E2E_DURATION_S = 300.0
+"""The whole default drive: the issue's bounds (lever arm within 0.1 m, position under 2 m) are for
+it; at 120 s the lever arm's forward component was still 0.09 m (3.3 of its claimed σ) off."""
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
+    return env
+
+
+def _events(run_dir: Path) -> list[dict]:
+    p = run_dir / EVENTS
+    if not p.exists():
+        return []
+    return [json.loads(ln) for ln in p.read_text().splitlines() if ln.strip()]
+
+
+def _run_cli(*argv: str, capsys) -> tuple[int, str, str]:
+    rc = main(["align", "--mode", "gnss", *argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end through firmware-sim
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def e2e_run(tmp_path_factory):
+    """One simulated alignment from a 90° initial heading error (the CLI in this process)."""
+    out = tmp_path_factory.mktemp("align_gnss") / "run"
+    json_path = out.parent / "x.json"
+    t0 = time.monotonic()
+    rc = main(
+        [
+            "align",
+            "--mode",
+            "gnss",
+            "--simulate",
+            "--duration",
+            str(E2E_DURATION_S),
+            "--heading-error",
+            "90",
+            "--time-scale",
+            str(TIME_SCALE),
+            "--seed",
+            "3",
+            "--out",
+            str(out),
+            "--json",
+            str(json_path),
+        ]
+    )
+    wall_s = time.monotonic() - t0
+    return rc, out, json.loads(json_path.read_text()), wall_s
+
+
+def test_simulated_alignment_from_90_deg_is_within_3_sigma_of_the_truth(e2e_run):
+    rc, out, result, wall_s = e2e_run
+    assert rc == 0
+    assert result["kind"] == gr.KIND and result["complete"] is True
+    assert result["method"] == "sincos"
+    assert result["time_alignment"]["method"] == "truth-log"
+    assert result["imu"]["lost_samples"] == 0
+    assert result["duration_device_s"] == pytest.approx(E2E_DURATION_S)
+    # the filter started 90° off the truth at the start
+    start = result["truth"]["heading_at_start_deg"]
+    assert math.isclose((result["initial_heading_deg"] - start) % 360.0, 90.0, abs_tol=1e-9)
+    assert abs(result["error_deg"]) <= 3.0 * result["heading_std_deg"]
+    assert result["converged_after_s"] is not None
+    assert result["lever_arm_error_m"] < 0.1
+    assert result["position_error_m"] < 2.0
+    for key in (
+        "heading_deg",
+        "heading_std_deg",
+        "lever_arm_m",
+        "converged_after_s",
+        "duration_device_s",
+        "method",
+        "position_error_m",
+    ):
+        assert key in result
+    assert set(result["methods"]) == {"sincos", "small_angle"}
+    assert (out / "report.png").stat().st_size > 10_000
+    for name in ("imu.raw", "gnss.nmea", "imu.rx", "gnss.rx", "truth.jsonl", "config.json", EVENTS, RESULT):
+        assert (out / name).exists(), name
+
+
+def test_bad_nmea_is_counted_and_skipped_and_ctrl_c_keeps_the_data_and_exits_130(tmp_path):
+    """One simulator run with NMEA faults, stopped by SIGINT after 30 s of device time: the faults
+    are counted (binomial 5σ of the injected rates), no-fix epochs are not used, nothing crashes;
+    the data read is aligned, saved as incomplete, and `replay_gnss_run` recomputes it bit for bit
+    from imu.raw + gnss.nmea + events alone (the replay check lives here rather than on the 300 s
+    run: same code path, a sixth of the filter time, and the harder case — faults, cut short)."""
+    run_dir = tmp_path / "run"
+    rate = 0.05
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "northfinder",
+            "align",
+            "--mode",
+            "gnss",
+            "--simulate",
+            "--time-scale",
+            str(TIME_SCALE),
+            "--seed",
+            "4",
+            "--fault",
+            f"gnss-bad-checksum-rate={rate}",
+            "--fault",
+            f"gnss-truncate-rate={rate}",
+            "--fault",
+            "gnss-nofix=15:3",
+            "--out",
+            str(run_dir),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+        env=_env(),
+    )
+    try:
+        deadline = time.monotonic() + 60.0
+        while not any(e["event"] == "start" for e in _events(run_dir)):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "no start event within 60 s"
+            time.sleep(0.05)
+        while (run_dir / "imu.raw").stat().st_size < 36 * 250 * 30:  # 30 s of device time read
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.startswith("northfinder:")]
+    assert len(lines) == 1 and "SIGINT" in lines[0] and str(run_dir) in lines[0]
+    end = [e for e in _events(run_dir) if e["event"] == "end"]
+    assert len(end) == 1 and end[0]["complete"] is False
+    partial = json.loads((run_dir / RESULT).read_text())
+    assert partial["complete"] is False
+    assert 30.0 <= partial["duration_device_s"] < 300.0
+    assert math.isfinite(partial["heading_deg"]) and math.isfinite(partial["heading_std_deg"])
+
+    s = partial["gnss"]["stats"]
+    total = s["sentences"] + s["bad_checksum"] + s["truncated"] + s["malformed"] + s["unknown"]
+    # truncation is drawn first; a checksum is corrupted only in a sentence left whole
+    for count, p in ((s["truncated"], rate), (s["bad_checksum"], rate * (1 - rate))):
+        assert abs(count - total * p) <= 5 * math.sqrt(total * p * (1 - p)), (count, total, p)
+    # 3 s without a fix: 30 epochs of no-fix sentences (minus the faulted ones), none used
+    assert 0 < s["no_fix"] <= 90
+    assert s["malformed"] == 0
+    assert partial["gnss"]["updates"] < partial["gnss"]["fixes"]
+
+    again, complete = gr.replay_gnss_run(run_dir)
+    assert complete is False
+    assert differences(partial, again) == []
+
+
+# ---------------------------------------------------------------------------------------------
+# User mistakes: one line, non-zero exit
+# ---------------------------------------------------------------------------------------------
+def _one_line(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["--simulate", "--lever-arm", "1,2"], "--lever-arm 1,2"),
+        (["--simulate", "--lever-arm", "1,2,x"], "--lever-arm 1,2,x"),
+        (["--simulate", "--duration", "0"], "--duration 0"),
+        (["--duration", "60"], "--config"),
+        (["--config", "bench.toml", "--heading-error", "10"], "--heading-error"),
+    ],
+)
+def test_flag_mistakes_are_one_line(argv, needle, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    rc, _, err = _run_cli(*argv, "--out", str(tmp_path / "run"), capsys=capsys)
+    assert rc == 2
+    assert needle in _one_line(err)
+
+
+def test_missing_gnss_port_in_the_bench_config_is_one_line(tmp_path, capsys):
+    cfg = tmp_path / "bench.toml"
+    cfg.write_text('[imu]\nport = "/dev/ttyUSB1"\nrate_hz = 250\n')
+    rc, _, err = _run_cli("--config", str(cfg), "--out", str(tmp_path / "run"), capsys=capsys)
+    assert rc == 2
+    line = _one_line(err)
+    assert "[gnss] port" in line and str(cfg) in line
+
+
+def test_a_port_that_does_not_exist_is_one_line_naming_it(tmp_path, capsys):
+    cfg = tmp_path / "bench.toml"
+    missing = str(tmp_path / "no-such-tty")
+    cfg.write_text(f'[imu]\nport = "{missing}"\nrate_hz = 250\n[gnss]\nport = "{missing}-gnss"\n')
+    rc, _, err = _run_cli("--config", str(cfg), "--out", str(tmp_path / "run"), capsys=capsys)
+    assert rc == 3
+    line = _one_line(err)
+    assert "imu" in line and missing in line
+
+
+def test_bench_config_keys_are_checked(tmp_path):
+    cfg = tmp_path / "bench.toml"
+    cfg.write_text('[imu]\nport = "/dev/a"\n[gnss]\nport = "/dev/b"\nlever_arm = [1, 2, 3]\n')
+    with pytest.raises(gr.ConfigError, match=r"unknown key \[gnss\] lever_arm"):
+        gr.load_bench(cfg)
+    cfg.write_text('[imu]\nport = "/dev/a"\n[gnss]\nport = "/dev/b"\nlever_arm_m = [1, 2]\n')
+    with pytest.raises(gr.ConfigError, match=r"\[gnss\] lever_arm_m"):
+        gr.load_bench(cfg)
+    cfg.write_text('[imu]\nport = "/dev/a"\n[gnss]\nport = "/dev/a"\n')
+    with pytest.raises(gr.ConfigError, match="both /dev/a"):
+        gr.load_bench(cfg)
+    cfg.write_text(
+        '[imu]\nport = "/dev/a"\nrate_hz = 250\n[gnss]\nport = "/dev/b"\nlever_arm_m = [0.5, 1.5, 1.2]\n'
+    )
+    bench = gr.load_bench(cfg)
+    assert bench.gnss.lever_arm_m == (0.5, 1.5, 1.2) and bench.imu.rate_hz == 250
+
+
+# ---------------------------------------------------------------------------------------------
+# Host receive-stamp alignment (real hardware): an exact identity on synthetic arrivals
+# ---------------------------------------------------------------------------------------------
+def test_host_stamp_alignment_recovers_the_offset_up_to_the_smallest_delays():
+    """IMU index 0 starts at GNSS time t0. Chunks arrive after random delays; the lower-envelope
+    estimate must equal t0 + (smallest IMU delay − smallest GNSS delay) to rounding."""
+    from firmware_sim.devices.gnss import format_gga, format_rmc, format_vtg
+    from firmware_sim.devices.kvh import pack_messages
+
+    rng = np.random.default_rng(7)
+    rate, k_scale, t0, host0 = 250.0, 20.0, 3.137, 1234.5
+    utc_ref = 1795348800.0  # 2026-11-22T12:00:00Z
+    n = 250 * 60
+    raw = pack_messages(np.zeros((n, 3)), np.tile([0.0, 0.0, 1.0], (n, 1)), 0x77, np.arange(n) & 0x7F, 25)
+    ends = np.sort(rng.choice(np.arange(1, n), size=300, replace=False))
+    ends = np.append(ends, n)  # last sample in each chunk (count), i.e. index ends−1
+    imu_delay = rng.uniform(0.002, 0.3, len(ends))  # device seconds
+    imu_host = host0 + (t0 + ends / rate + imu_delay) / k_scale
+    import datetime as dt
+
+    epochs = np.arange(0, 600)  # 10 Hz, 60 s
+    sentences, u = [], []
+    for k in epochs:
+        when = dt.datetime(2026, 11, 22, 12, tzinfo=dt.UTC) + dt.timedelta(milliseconds=100 * int(k))
+        s = (
+            format_gga(when, 40.0, 116.3, 0.0)
+            + format_rmc(when, 40.0, 116.3, 0.0, 0.0)
+            + format_vtg(0.0, 0.0)
+        )
+        sentences.append(s)
+        u.append(k / 10.0)
+    # a corrupted GGA claiming a later time would fake an early arrival: it must be skipped
+    bad = format_gga(dt.datetime(2026, 11, 22, 12, 5, 0, tzinfo=dt.UTC), 40.0, 116.3, 0.0)
+    bad = bad[:-4] + b"00\r\n" if not bad.endswith(b"00\r\n") else bad[:-4] + b"01\r\n"
+    sentences.insert(10, bad)
+    u.insert(10, None)
+    nmea, totals, hosts, gnss_delay = b"", [], [], []
+    for s, ui in zip(sentences, u, strict=True):
+        nmea += s
+        if ui is None:
+            continue
+        d = rng.uniform(0.004, 0.5)
+        gnss_delay.append(d)
+        totals.append(len(nmea))
+        hosts.append(host0 + (ui + d) / k_scale)
+    est = gr.host_offsets(
+        raw, (imu_host, ends * 36), nmea, (np.array(hosts), np.array(totals)), rate, utc_ref, k_scale
+    )
+    expect = t0 + imu_delay.min() - min(gnss_delay)
+    assert est["t0_s"] == pytest.approx(expect, abs=1e-6)
+    assert est["gnss_epochs"] == len(epochs)
