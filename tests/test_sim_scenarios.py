@@ -413,3 +413,84 @@ def test_vehicle_gnss_sentences_parse_and_follow_the_trajectory(tmp_path):
     assert both.sum() > 0.9 * n  # the rows run at 50 Hz: every epoch has one
     assert np.allclose(rows["antenna_pos_enu_m"][i[both]], pos_truth[both], atol=1e-6)
     assert np.allclose(rows["antenna_vel_enu_m_s"][i[both]], vel_truth[both], atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# reconnects and configuration mode: the k ↔ device-time anchors
+# ---------------------------------------------------------------------------------------------
+def device_time_s(events: list[dict], k: np.ndarray) -> np.ndarray:
+    """docs/simulator.md: sample k's interval ends at t_a + (k − k_a)/rate_a for the anchor
+    (imu_connect: k0, t0_device_s; imu_grid: k_next, t_next_device_s) with the largest k_a ≤ k
+    (the later one in the file on a tie)."""
+    anchors = [(e["k0"], e["t0_device_s"], e["rate_hz"]) if e["event"] == "imu_connect"
+               else (e["k_next"], e["t_next_device_s"], e["rate_hz"])
+               for e in events if e["event"] in ("imu_connect", "imu_grid")]
+    k = np.asarray(k)
+    out = np.full(k.shape, np.nan)
+    best = np.full(k.shape, -1)
+    for ka, ta, rate in anchors:  # file order: a later anchor with the same k_a wins
+        use = (ka <= k) & (ka >= best)
+        out[use] = ta + (k[use] - ka) / rate
+        best[use] = ka
+    return out
+
+
+def test_reconnect_and_config_mode_keep_the_time_map_exact(tmp_path):
+    """Client A reads, puts the IMU in configuration mode for a while (the grid moves on without
+    samples), reads again and leaves; client B connects later. Every frame's gyro increment equals
+    the world's over the interval the anchors give — and not over the interval next to it."""
+    log_path = tmp_path / "truth.jsonl"
+    cfg = SimConfig(scenario="ship", seed=8, time_scale=10.0, truth_log=str(log_path))
+    with Simulator(cfg) as ep:
+        _ = time.sleep(0.2)
+        a = serial.Serial(ep["imu"], 921600)
+        raw_a = _read_exact(a, 36 * 1500)
+        a.write(b"=CONFIG,1\n")
+        time.sleep(0.3)  # about 3 s of device time without samples
+        a.write(b"=CONFIG,0\n")
+        raw_a += a.read(a.in_waiting)  # what was on its way before the configuration mode
+        raw_a += _read_exact(a, 36 * 1500)
+        a.close()
+        time.sleep(0.3)
+        b = serial.Serial(ep["imu"], 921600)
+        raw_b = _read_exact(b, 36 * 1000)
+        b.close()
+    header, events, rows = _truth_log(log_path)
+    names = [e["event"] for e in events]
+    links = [n for n in names if n in ("imu_connect", "imu_disconnect")]
+    assert links[:3] == ["imu_connect", "imu_disconnect", "imu_connect"] and len(links) <= 4  # B's close too
+    assert names.count("imu_grid") == 1 and names[-1] == "end"
+    connect_a, connect_b = (e for e in events if e["event"] == "imu_connect")
+    world = build_world(cfg)
+    dt_s = 1.0 / SHIP_RATE_HZ
+    lever = header["imu"]["lever_arm_b_m"]
+    residual, shifted = [], []
+    for raw, connect in ((raw_a, connect_a), (raw_b, connect_b)):
+        decoder = KvhDecoder()
+        frames = decoder.feed(raw)
+        assert raw[:4] == HEADER and decoder.stats.skipped_bytes == 0 and decoder.pending_bytes < 36
+        k = connect["k0"] + (int(frames.frames["sequence"][0]) - connect["sequence0"]) % 128 \
+            + frames.sample_index - frames.sample_index[0]
+        t_end = device_time_s(events, k)
+        measured = frames.frames["gyro"].astype(float)
+        # contiguous runs of device time → one World.increments call each
+        cut = np.flatnonzero(np.abs(np.diff(t_end) - dt_s) > 1e-9) + 1
+        for lo, hi in zip(np.r_[0, cut], np.r_[cut, len(t_end)], strict=True):
+            n = hi - lo
+            truth, _ = world.increments(t_end[lo] - 2 * dt_s, n + 2, dt_s, lever)  # one extra each side
+            residual.append(measured[lo:hi] - truth[1:-1])
+            shifted.append(measured[lo:hi] - truth[2:])
+        if connect is connect_a:
+            assert len(cut) == 1 and t_end[cut[0]] - t_end[cut[0] - 1] > 1.0  # the configuration gap
+    disconnect = next(e for e in events if e["event"] == "imu_disconnect")
+    assert disconnect["k_last"] >= connect_a["k0"] + 3000 - 1 and connect_b["k0"] > disconnect["k_last"]
+    rms = float(np.sqrt(np.mean(np.concatenate(residual) ** 2)))
+    rms_shift = float(np.sqrt(np.mean(np.concatenate(shifted) ** 2)))
+    from firmware_sim.physics.sensors import GYRO_PRESETS
+
+    # the residual is the gyro's white noise, σ = N·√dt (ARW in rad/√s); the other errors of the
+    # grade are far below it per sample (bias 0.004 °/h·1 ms ≈ 2e-11 rad, 1 ppm of 1e-4 rad)
+    sigma = max(GYRO_PRESETS[cfg.grade].arw_deg_rt_h) * math.pi / 180.0 / 60.0 * math.sqrt(dt_s)
+    print(f"\nreconnect/config: gyro increment vs world rms {rms:.3e} rad (white noise σ {sigma:.3e}); "
+          f"one sample off {rms_shift:.3e} rad")
+    assert rms < 1.1 * sigma and rms_shift > 2.0 * sigma
