@@ -27,8 +27,10 @@ from northfinder.cli.replay import differences
 from northfinder.rundir import EVENTS, RESULT
 
 ROOT = Path(__file__).resolve().parents[1]
-TIME_SCALE = 20.0
-"""firmware-sim's vehicle keeps up with 20× real time on this shared 2-core host (40× fell behind)."""
+TIME_SCALE = 25.0
+"""firmware-sim's vehicle kept up with 25× real time on this shared 2-core host (60 device s in 2.45 s
+of wall time; 30× took 4.2 s, 40× fell far behind). A simulator that falls behind delays the data,
+it does not lose it: the test would take longer, not fail."""
 E2E_DURATION_S = 300.0
 """The whole default drive: the issue's bounds (lever arm within 0.1 m, position under 2 m) are for
 it; at 120 s the lever arm's forward component was still 0.09 m (3.3 of its claimed σ) off."""
