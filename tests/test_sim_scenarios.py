@@ -494,3 +494,33 @@ def test_reconnect_and_config_mode_keep_the_time_map_exact(tmp_path):
     print(f"\nreconnect/config: gyro increment vs world rms {rms:.3e} rad (white noise σ {sigma:.3e}); "
           f"one sample off {rms_shift:.3e} rad")
     assert rms < 1.1 * sigma and rms_shift > 2.0 * sigma
+
+
+def test_bench_truth_rows_follow_the_table_while_it_homes(tmp_path):
+    """Bench rows: the stator's attitude as configured, the top's heading = ψ − α (level stator,
+    C_b^n = Rz(−ψ)·Rz(α)), α from the power-on angle to 0 while the stage homes over its pty."""
+    log_path = tmp_path / "truth.jsonl"
+    cfg = SimConfig(heading_deg=37.0, accel_enabled=False, time_scale=20.0, truth_log=str(log_path),
+                    stage_power_on_deg=100.0)
+    with Simulator(cfg) as ep:
+        stage = serial.Serial(ep["turntable"], 57600, timeout=2.0)
+        stage.write(b"1OR\r\n")
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:  # until READY from homing (32)
+            stage.write(b"1TS\r\n")
+            if stage.readline().strip().endswith(b"32"):
+                break
+            time.sleep(0.05)
+        stage.close()
+    header, events, rows = _truth_log(log_path)
+    assert header["fields"][-5:] == ["platform_heading_deg", "platform_pitch_deg", "platform_roll_deg",
+                                     "table_deg", "table_encoder_deg"]
+    assert np.allclose(rows["platform_heading_deg"], 37.0) and np.allclose(rows["platform_pitch_deg"], 0.0)
+    alpha = rows["table_deg"]
+    assert alpha[0] == pytest.approx(100.0) and abs(alpha[-1]) < 0.05  # homed (ringing dies out)
+    assert np.ptp(alpha) > 99.0
+    assert np.allclose((rows["heading_deg"] - (37.0 - alpha) + 180.0) % 360.0 - 180.0, 0.0, atol=1e-9)
+    encoder = rows["table_encoder_deg"]
+    assert encoder[0] == pytest.approx(100.0, abs=1e-4)  # the homing began at t = 0 (sent at start)
+    assert abs(encoder[-1] - alpha[-1]) < 0.01  # the top rings about the motor (≤ 0.005° here) then settles
+    assert np.allclose(rows["imu_pos_enu_m"], 0.0) and np.allclose(rows["imu_vel_enu_m_s"], 0.0)
