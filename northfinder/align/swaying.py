@@ -590,7 +590,7 @@ def _gls_step(f_win, m_n0, c_ib0_nt, t_end_s, lat, whiten):
     """
     r_nt = _earth_rotation_n0_to_nt(t_end_s, lat)
     c_n0_ib0 = c_ib0_nt.T @ r_nt
-    a = np.concatenate([-c_n0_ib0 @ skew(mj) for mj in m_n0])
+    a = -(c_n0_ib0 @ skew(m_n0)).reshape(-1, 3)  # rows of −C[M_j×], window after window
     r = (f_win - m_n0 @ c_n0_ib0.T).ravel()
     aw = whiten @ a
     rw = whiten @ r
