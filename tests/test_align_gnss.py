@@ -312,3 +312,40 @@ def test_host_stamp_alignment_recovers_the_offset_up_to_the_smallest_delays():
     expect = t0 + imu_delay.min() - min(gnss_delay)
     assert est["t0_s"] == pytest.approx(expect, abs=1e-6)
     assert est["gnss_epochs"] == len(epochs)
+
+
+def test_hardware_path_on_a_moving_vehicle_refuses_with_one_line(tmp_path, capsys):
+    """`--config` (the real-hardware path: IMU configuration read back, host receive stamps) against
+    firmware-sim's vehicle once it is driving: levelling needs a still start, so one line says so.
+    The host-stamp time alignment of that run is computed and finite."""
+    from northfinder.align.gnss_run_live import VehicleSim, VehicleSimProcess
+    from northfinder.rundir import RunDir
+
+    truth_log = tmp_path / "truth.jsonl"
+    with VehicleSimProcess(VehicleSim(time_scale=TIME_SCALE, truth_log=str(truth_log))) as endpoints:
+        deadline = time.monotonic() + 30.0
+        while True:  # wait until the vehicle drives (it starts at 10 s, 10 m/s from 18 s)
+            rows = truth_log.read_text().splitlines() if truth_log.exists() else []
+            if any('"type": "truth"' in r and json.loads(r)["t_device_s"] > 20.0 for r in rows[-3:]):
+                break
+            assert time.monotonic() < deadline, "firmware-sim did not reach 20 s of device time"
+            time.sleep(0.05)
+        cfg = tmp_path / "bench.toml"
+        cfg.write_text(
+            f'[imu]\nport = "{endpoints["imu"]}"\nrate_hz = 250\n[gnss]\nport = "{endpoints["gnss"]}"\n'
+            "lever_arm_m = [0.6, 1.4, 1.1]\n"
+        )
+        run_dir = tmp_path / "run"
+        rc, _, err = _run_cli("--config", str(cfg), "--duration", "20", "--out", str(run_dir), capsys=capsys)
+    assert rc == 2 and "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.startswith("northfinder:")]  # after the progress bar
+    assert len(lines) == 1 and "standing still" in lines[0]
+    rd = RunDir(run_dir, create=False)
+    events = rd.events()
+    start, end = events[0], events[-1]
+    assert start["kind"] == gr.KIND and start["imu"]["rate_hz"] == 250.0 and end["complete"] is True
+    block, fixes = gr.window_from_logs(rd, start, end)
+    assert len(block) == end["imu"]["samples"] and len(fixes) == end["gnss"]["fixes"]
+    t0, info = gr.time_alignment(rd, start, end, None, fixes[-1].time_s - end["utc_ref_s"])
+    assert info["method"] == "host" and math.isfinite(t0)
+    assert info["imu_chunks"] > 0 and info["gnss_epochs"] > 0

@@ -412,6 +412,23 @@ def gnss_series(fixes: list[GnssFix], utc_ref_s: float, pos_std_m, vel_std_m_s: 
     )
 
 
+STILL_SPEED_M_S = 0.5
+"""GNSS speed above which the vehicle is taken to be moving: 10× the 0.05 m/s velocity noise."""
+
+
+def check_still_start(fixes: list[GnssFix], t_s: np.ndarray, t_start_s: float, level_s: float) -> None:
+    """The filter levels the IMU on the window's first `level_s` (gnss_ins.coarse_level): the
+    vehicle must stand still then. InputError saying so if a fix in that span shows it moving."""
+    sel = np.nonzero((t_s >= t_start_s) & (t_s <= t_start_s + level_s))[0]
+    speeds = [fixes[i].speed_m_s for i in sel if fixes[i].speed_m_s is not None]
+    if speeds and max(speeds) > STILL_SPEED_M_S:
+        raise InputError(
+            f"the vehicle moved during the first {level_s:g} s of the window (GNSS speed up to "
+            f"{max(speeds):.1f} m/s): the alignment levels the IMU on a still start — start the run "
+            "standing still"
+        )
+
+
 def _method_dict(res: GnssAlignResult, truth_heading_deg: float | None) -> dict[str, Any]:
     out = {
         "heading_deg": res.heading_deg,
@@ -461,6 +478,7 @@ def compute_gnss_result(
     gnss = gnss_series(fixes, float(end["utc_ref_s"]), flt["pos_std_m"], flt["vel_std_m_s"])
     t_start_imu = imu.t0_s
     t_end_imu = t0_index0_s + (float(idx[-1]) + 1.0) / rate
+    check_still_start(fixes, gnss.t_s, t_start_imu, GnssAlignConfig.level_s)
     initial = flt.get("initial_heading_deg")
     truth_start = truth_end = None
     if truth is not None:
@@ -557,8 +575,9 @@ def compute_gnss_result(
             hist["position_error_m"] = np.linalg.norm(perr, axis=1)
             result["position_error_m"] = float(hist["position_error_m"][-1])
             result["position_error_horizontal_m"] = float(np.hypot(perr[-1, 0], perr[-1, 1]))
-            if main.converged_after_s is not None:
-                after = h.t_s - main.start_s >= main.converged_after_s
+            t_1deg = result["methods"][main.method]["time_below_1deg_s"]
+            if t_1deg is not None:  # converged in truth: |heading error| < 1° from then on
+                after = h.t_s - t_start_imu >= t_1deg - 1e-9
                 result["position_error_max_after_convergence_m"] = float(
                     hist["position_error_m"][after].max()
                 )
