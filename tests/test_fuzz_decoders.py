@@ -557,8 +557,6 @@ def test_slcan_decode_frame_only_raises_valueerror(golden, data):
     assert msg.dlc <= 8 and (msg.is_remote_frame or len(msg.data) == msg.dlc)
 
 
-@pytest.mark.xfail(strict=True, reason="firmware_sim slcan decode_frame parses IDs with int(x, 16), "
-                   "which accepts '-', '+', '0x', '_' and spaces: 't-1F0' gives ID -31 (reported)")
 @fuzz_settings(200)
 @given(st.text("tTrR0123456789ABCDEFx_-+ ", min_size=1, max_size=14).map(str.encode))
 @example(b"t-1F0")

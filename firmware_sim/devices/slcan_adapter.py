@@ -55,6 +55,9 @@ def encode_frame(msg: can.Message) -> bytes:
     return (head + body).encode("ascii") + b"\r"
 
 
+_HEX = frozenset("0123456789ABCDEFabcdef")
+
+
 def decode_frame(line: bytes) -> can.Message:
     """One slcan frame line (without or with its `\\r`) -> can.Message; ValueError if malformed."""
     text = line.rstrip(b"\r").decode("ascii")
@@ -65,13 +68,16 @@ def decode_frame(line: bytes) -> can.Message:
     id_len = 8 if extended else 3
     if len(text) < 1 + id_len + 1:
         raise ValueError(f"slcan frame line too short: {text!r}")
-    arbitration_id = int(text[1 : 1 + id_len], 16)
+    id_text, dlc_text, payload = text[1 : 1 + id_len], text[1 + id_len], text[2 + id_len :]
+    # int(x, 16) alone would accept '-', '+', '0x', '_' and spaces: only hex digits are slcan
+    if not all(c in _HEX for c in id_text + payload) or not dlc_text.isdigit():
+        raise ValueError(f"slcan frame line with a non-hex character: {text!r}")
+    arbitration_id = int(id_text, 16)
     if arbitration_id > (0x1FFFFFFF if extended else 0x7FF):
         raise ValueError(f"slcan frame ID out of range: {text!r}")
-    dlc = int(text[1 + id_len])
+    dlc = int(dlc_text)
     if dlc > 8:
         raise ValueError(f"slcan DLC above 8: {text!r}")
-    payload = text[2 + id_len :]
     if remote:
         if payload:
             raise ValueError(f"slcan remote frame with data: {text!r}")
