@@ -3,11 +3,12 @@
 On a base at rest the gyros see only the Earth rate and the accelerometers only gravity:
 ω_ie^n = [0, Ωe·cos L, Ωe·sin L], f^n = [0, 0, g] (docs/CONVENTIONS.md, "What the sensors
 measure"). Averaging both over a window and solving the two-vector (TRIAD) problem gives
-C_b^n directly — the classical analytic coarse alignment (Britting, "Inertial Navigation
-Systems Analysis", 1971, §10; Titterton & Weston, "Strapdown Inertial Navigation Technology",
-2nd ed., §10.3, eq. 10.4–10.6). On a swaying base the mean body rate of the sway does not vanish
-over a window that is not a whole number of periods and dwarfs Ωe (7.3e-5 rad/s), so the heading
-is lost: tests/test_swaying.py and tools/reproduce_swaying_paper.py show it with numbers.
+C_b^n directly — the classical analytic coarse alignment (docs/swaying.md §7, eq. 10; see the
+initial-alignment chapters of Britting, "Inertial Navigation Systems Analysis", 1971, and of
+Titterton & Weston, "Strapdown Inertial Navigation Technology", 2nd ed.). On a swaying base
+the mean body rate of the sway does not vanish over a window that is not a whole number of
+periods and dwarfs Ωe (7.3e-5 rad/s), so the heading is lost: tests/test_swaying.py and
+tools/reproduce_swaying_paper.py show it with numbers.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ class CoarseSolution:
 def coarse_align(
     gyro_rad_s: np.ndarray, accel_g: np.ndarray, rate_hz: float, latitude_deg: float
 ) -> CoarseSolution:
-    """TRIAD on the window means of ω^b and f^b (Titterton & Weston eq. 10.4–10.6).
+    """TRIAD on the window means of ω^b and f^b (docs/swaying.md eq. 10).
 
     up^b = f̄/|f̄|, east^b = (ω̄ × f̄)/|ω̄ × f̄| (ω_ie × up points east), north^b = up × east;
     C_n^b = [east^b, north^b, up^b] as columns, C_b^n its transpose. The 1σ propagates the
