@@ -128,7 +128,7 @@ def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def attitude_quaternions(dtheta_rad: np.ndarray) -> np.ndarray:
-    """q_k = C_b(t_k)^{i_b0} for k = 0…n from n gyro delta angles [rad] (q_0 = identity).
+    """q_k = C_b(t_k)^{i_b0} for k = 0…n from n gyro delta angles [rad] (docs/swaying.md eq. 1–2).
 
     Each interval's rotation vector carries Savage's one-past-sample coning term
     φ_k = Δθ_k + Δθ_{k−1}×Δθ_k/12 (northfinder.rotations.coning_corrected_rotvec); the chain
@@ -142,7 +142,7 @@ def attitude_quaternions(dtheta_rad: np.ndarray) -> np.ndarray:
 
 
 def velocity_increments_ib0(q: np.ndarray, dtheta_rad: np.ndarray, dv_m_s: np.ndarray) -> np.ndarray:
-    """Velocity increments carried into i_b0 [m/s], one per sample interval.
+    """Velocity increments carried into i_b0 [m/s], one per sample interval (docs/swaying.md eq. 3).
 
     Δv_k^{i_b0} = C_b(t_{k−1})^{i_b0}·(Δv_k + ½Δθ_k×Δv_k + (Δθ_{k−1}×Δv_k + Δv_{k−1}×Δθ_k)/12):
     the rotation compensation and Savage's two-sample sculling term, so that the sum over an
@@ -205,7 +205,7 @@ def _kernel(n: int) -> np.ndarray:
 
 
 def _up_n0(t_s: np.ndarray, latitude_rad: float) -> np.ndarray:
-    """Local up at time t expressed in n0 (the ENU frame at t = 0 frozen in inertial space).
+    """Local up at time t in n0, the ENU frame at t = 0 frozen in inertial space (docs eq. 5).
 
     Rodrigues rotation of up = [0,0,1] by Ωe·t about the Earth axis k = [0, cos L, sin L]:
     u(t) = cos(Ωt)·up + sin(Ωt)·k×up + (1 − cos Ωt)(k·up)·k — the cone of paper step 2.
@@ -226,7 +226,7 @@ def _earth_rotation_n0_to_nt(t_s: float, latitude_rad: float) -> np.ndarray:
 
 
 def _wahba(f_ib0: np.ndarray, m_n0: np.ndarray) -> np.ndarray:
-    """C_{n0}^{i_b0} minimizing Σ_j |F_j − C·M_j|² (Wahba's problem, Markley's SVD solution).
+    """C_{n0}^{i_b0} minimizing Σ_j |F_j − C·M_j|² (docs/swaying.md eq. 6; Markley's SVD solution).
 
     B = Σ F_j M_jᵀ = U S Vᵀ → C = U·diag(1, 1, det U·det V)·Vᵀ.
     """
@@ -259,7 +259,7 @@ def _fit_cone(f_ib0, m_n0, t_end_s, latitude_rad):
 
 
 def _fit_circle(f_ib0, t_win_s, t_end_s, latitude_rad):
-    """The paper's space-circle fit (abstract, step 2): plane of the gravity directions by SVD.
+    """The paper's space-circle fit (abstract, step 2; docs/swaying.md eq. 8): plane by SVD.
 
     The plane normal is the Earth axis, oriented so that gravity turns positively about it; the
     vertical at t_end is the last direction turned on by Ωe·(t_end − t_last) about that axis.
