@@ -1,0 +1,636 @@
+"""`northfinder align --mode swaying`: acquisition, result assembly, report and replay.
+
+What: read a KVH format-A IMU (gyros + accelerometers) on a swaying base for a window of device
+time, keep its bytes in the run directory as they arrive (imu.raw), then align with the
+inertial-frame cone fit (northfinder.align.swaying) and, on the same samples, the static analytic
+coarse alignment (northfinder.align.coarse) for contrast.
+
+Why here: the CLI (northfinder/cli/align_swaying.py) and `northfinder replay` share one function,
+:func:`compute_swaying_result`, fed from the driver's arrays live and from the pure decoder
+(`decode_imu_stream`) in replay — the same bytes give the same arrays, so the replayed result is
+bit-identical.
+
+Truth of a simulated run (docs/simulator.md, "Time alignment of the IMU"): firmware-sim's truth log
+names the absolute sample k0 (sequence number sequence0) of the first frame it handed to this
+client, ending at device time t0_device_s. The first frame decoded (index 0, sequence s) is sample
+k_first = k0 + ((s − sequence0) mod 128), so the sample with index u ends at
+t0_device_s + (k_first − k0 + u)/rate. The truth heading is the logged heading at the end of the
+last sample used — the instant the estimator's attitude refers to.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from northfinder.align.coarse import coarse_align
+from northfinder.align.swaying import (
+    KVH_GYRO_RANGE_DPS,
+    METHODS,
+    align_swaying_block,
+    attitude_quaternions,
+    minimum_duration_s,
+    quat_to_dcm,
+    velocity_increments_ib0,
+)
+from northfinder.constants import DEG, OMEGA_EARTH_RAD_S, STANDARD_GRAVITY_M_S2, wrap_deg_180
+from northfinder.errors import ConfigError, DeviceError, InputError, RunAborted
+from northfinder.rundir import CONFIG, EVENTS, IMU_RAW, RESULT, RunDir, jsonable
+from northfinder.sequencer import StopFlag
+from northfinder.simulate import SimulatorProcess
+
+KIND = "align-swaying"
+SCHEMA = "northfinder.align-swaying/1"
+TRUTH_LOG = "truth.jsonl"
+DEFAULT_DURATION_S = 300.0
+DEFAULT_SWAY_PERIOD_S = 10.0
+"""Longest sway period assumed on hardware unless --sway-period says otherwise (ship roll 6–12 s)."""
+REFERENCE_SWAY = "roll=10:8,pitch=5:6,yaw=3:10,heave=0.5:7"
+"""Issue 5's reference scenario (the swaying-base paper's): roll 10°/8 s, pitch 5°/6 s, yaw 3°/10 s,
+heave 0.5 m/7 s."""
+SWAY_AXES = ("roll", "pitch", "yaw", "surge", "sway", "heave")
+SIM_LEVER_ARM_M = (1.0, 2.0, 1.5)
+SIM_LATITUDE_DEG = 40.0
+SIM_HEADING_DEG = 37.0
+SIM_DEFAULT_TIME_SCALE = 40.0
+"""Device time runs 40× the wall clock: 300 s in 7.5 s of reading. Measured on this 2-core host
+(2026-11-22, load ≈ 5): the 1000 Hz ship stream read by the Imu driver lost nothing at 50×
+(300 s in 8.4 s wall) and at 30×; 40× leaves headroom on a loaded machine."""
+GYRO_SATURATION_FRACTION = 0.999
+
+
+# ---------------------------------------------------------------------------------------------
+# The sway specification (the same text firmware-sim takes; parsed here, northfinder never imports it)
+# ---------------------------------------------------------------------------------------------
+def parse_sway(text: str) -> dict[str, list[list[float]]]:
+    """'roll=10:8,heave=0.5:7' → {"roll": [[10, 8]], "heave": [[0.5, 7]]}; 'none' → {} (still ship).
+
+    AXIS=AMP:PERIOD_S[:PHASE_DEG], comma-separated; amplitudes in degrees (roll, pitch, yaw) or
+    metres (surge, sway, heave). InputError naming the flag and the item otherwise.
+    """
+    if text.strip().lower() in ("none", "0", "off"):
+        return {}
+    out: dict[str, list[list[float]]] = {}
+    for item in text.split(","):
+        axis, sep, value = item.strip().partition("=")
+        axis = axis.strip().lower()
+        if not sep or axis not in SWAY_AXES:
+            raise InputError(f"--sway {item.strip()!r}: write AXIS=AMP:PERIOD_S with AXIS one of "
+                             f"{', '.join(SWAY_AXES)}, e.g. --sway \"{REFERENCE_SWAY}\"")
+        try:
+            numbers = [float(v) for v in value.split(":")]
+        except ValueError:
+            numbers = []
+        if not 2 <= len(numbers) <= 3 or not all(math.isfinite(v) for v in numbers) or numbers[1] <= 0:
+            unit = "m" if axis in ("surge", "sway", "heave") else "deg"
+            raise InputError(f"--sway {item.strip()}: give {axis}=AMP:PERIOD_S as numbers (AMP in {unit}, "
+                             f"PERIOD_S > 0), e.g. --sway \"{REFERENCE_SWAY}\"")
+        out.setdefault(axis, []).append(numbers)
+    return out
+
+
+def format_sway(sway: dict[str, list[list[float]]]) -> str:
+    """The inverse of :func:`parse_sway` (what is passed on to firmware-sim)."""
+    if not sway:
+        return "none"
+    return ",".join(f"{axis}=" + ":".join(repr(float(v)) for v in term)
+                    for axis in SWAY_AXES for term in sway.get(axis, []))
+
+
+def longest_period_s(sway: dict[str, list[list[float]]], default_s: float = DEFAULT_SWAY_PERIOD_S) -> float:
+    """The longest sway period: it sets the estimator's smoothing window (4 periods)."""
+    periods = [term[1] for terms in sway.values() for term in terms]
+    return max(periods) if periods else default_s
+
+
+# ---------------------------------------------------------------------------------------------
+# firmware-sim's ship scenario as a subprocess
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class ShipSim:
+    """firmware-sim `--scenario ship`: the IMU alone at a lever arm on a swaying ship."""
+
+    sway: str = REFERENCE_SWAY
+    lever_arm_m: tuple[float, float, float] = SIM_LEVER_ARM_M
+    heading_deg: float = SIM_HEADING_DEG
+    latitude_deg: float = SIM_LATITUDE_DEG
+    grade: str = "nav"
+    seed: int = 1
+    time_scale: float = SIM_DEFAULT_TIME_SCALE
+    faults: Sequence[str] = field(default_factory=tuple)
+    truth_log: str | None = None
+    config: str | None = None
+    """A firmware-sim TOML for the keys without a flag (e.g. imu_variant); the flags win."""
+
+    def argv(self) -> list[str]:
+        out = [sys.executable, "-m", "firmware_sim", "--scenario", "ship", "--sway", self.sway,
+               "--lever-arm", ",".join(repr(float(v)) for v in self.lever_arm_m),
+               "--heading", repr(float(self.heading_deg)), "--latitude", repr(float(self.latitude_deg)),
+               "--grade", self.grade, "--seed", str(int(self.seed)),
+               "--time-scale", repr(float(self.time_scale))]
+        if self.truth_log:
+            out += ["--truth-log", str(self.truth_log)]
+        if self.config:
+            out += ["--config", str(self.config)]
+        for fault in self.faults:
+            out += ["--fault", fault]
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"scenario": "ship", "sway": self.sway, "lever_arm_m": list(self.lever_arm_m),
+                "heading_deg": self.heading_deg, "latitude_deg": self.latitude_deg, "grade": self.grade,
+                "seed": self.seed, "time_scale": self.time_scale, "faults": list(self.faults)}
+
+
+class ShipSimProcess(SimulatorProcess):
+    """SimulatorProcess for the ship scenario, whose endpoints are {"imu": PTY} (the base class
+    expects a turntable); firmware_sim is found next to the northfinder package."""
+
+    def start(self) -> dict[str, Any]:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        root = str(Path(__file__).resolve().parents[2])
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
+        try:
+            self.proc = subprocess.Popen(self.settings.argv(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                         stdin=subprocess.DEVNULL, env=env, start_new_session=True)
+        except OSError as exc:
+            raise DeviceError("firmware-sim", None, f"cannot start it ({exc.strerror})") from None
+        line = self._read_line(self.startup_timeout_s)
+        try:
+            endpoints = json.loads(line)
+            if not isinstance(endpoints, dict) or "imu" not in endpoints:
+                raise ValueError
+        except ValueError:
+            self.stop()
+            raise DeviceError("firmware-sim", None,
+                              f"printed {line[:120]!r} instead of the ship scenario's endpoints") from None
+        self.endpoints = endpoints
+        return endpoints
+
+
+# ---------------------------------------------------------------------------------------------
+# Hardware: [imu] and [site] of bench.toml
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class ImuSettings:
+    """The IMU port and what the run needs to know about the site."""
+
+    port: str
+    rate_hz: float = 1000.0
+    baudrate: int = 921600
+    latitude_deg: float = float("nan")
+    height_m: float = 0.0
+    source: str = ""
+
+
+def load_bench(path: str | Path, latitude_deg: float | None = None) -> ImuSettings:
+    """`[imu]` (port, rate_hz, baudrate) and `[site]` of a bench TOML through northfinder.config
+    (other tables are ignored); the latitude from `latitude_deg` if given, else from [site]."""
+    from northfinder import config as bench_config
+
+    cfg = bench_config.load(path)
+    if not cfg.imu.port:
+        raise ConfigError(f"{cfg.source}: [imu] port is missing; give the IMU's serial port")
+    lat = float(latitude_deg) if latitude_deg is not None else cfg.site.latitude_deg
+    if math.isnan(lat):
+        raise ConfigError(f"{cfg.source}: [site] latitude_deg is missing; give the site's latitude "
+                          "(or --latitude DEG)")
+    return ImuSettings(port=cfg.imu.port, rate_hz=float(cfg.imu.rate_hz), baudrate=int(cfg.imu.baudrate),
+                       latitude_deg=lat, height_m=float(cfg.site.height_m), source=cfg.source)
+
+
+# ---------------------------------------------------------------------------------------------
+# Acquisition
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class Window:
+    """What one acquisition read: the window's IMU samples and the run's start/end events."""
+
+    block: Any
+    start: dict[str, Any]
+    end: dict[str, Any]
+    stop: StopFlag
+
+
+def now_utc() -> str:
+    return datetime.now(UTC).isoformat()
+
+
+def _select(block: Any, first_index: int, last_index: int) -> Any:
+    """The samples of an ImuBlock with first_index ≤ index ≤ last_index."""
+    from northfinder.drivers.imu import ImuBlock
+
+    sel = (block.sample_index >= first_index) & (block.sample_index <= last_index)
+    idx = block.sample_index[sel]
+    lost = int(idx[-1] - idx[0] + 1 - len(idx)) if len(idx) else 0
+    return ImuBlock(idx, block.gyro_rad_s[sel], block.accel_g[sel], block.status[sel],
+                    block.temperature_c[sel], lost, block.rate_hz)
+
+
+def check_stream(block: Any, port: str) -> None:
+    """Refuse early what the alignment cannot use: no valid accelerometers (KVH status bits 4–6,
+    docs/PROTOCOLS.md §2, or all-zero fields) and gyros at the end of their range."""
+    status = np.asarray(block.status, dtype=np.int64)
+    if len(status) and (np.mean(((status >> 4) & 0b111) == 0b111) < 0.5 or not np.any(block.accel_g)):
+        raise DeviceError("imu", port, "reports no valid accelerometers (status bits 4–6 clear): the swaying "
+                          "alignment needs a 3-axis gyro + accelerometer IMU (KVH 1750/1760/1775)")
+    peak = float(np.max(np.abs(block.gyro_rad_s))) / DEG if len(status) else 0.0
+    if peak >= GYRO_SATURATION_FRACTION * KVH_GYRO_RANGE_DPS:
+        raise InputError(f"gyro reached {peak:.1f} °/s, the ±{KVH_GYRO_RANGE_DPS:g} °/s range of the IMU on "
+                         f"{port}: the sway saturates the gyro — align in calmer sea or with a wider-range IMU")
+
+
+class _View:
+    """rich progress bar in device time, with the stream counters."""
+
+    def __init__(self, duration_s: float, enabled: bool):
+        from rich.console import Console
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.progress = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
+                                 TimeElapsedColumn(), console=Console(stderr=True), disable=not enabled)
+        self.task = self.progress.add_task("device time", total=duration_s, info="waiting for data")
+
+    def update(self, done_s: float, total_s: float, stats: Any) -> None:
+        info = (f"{done_s:6.1f}/{total_s:g} s  lost {stats.lost_samples}  bad CRC {stats.bad_crc}  "
+                f"resyncs {stats.resyncs}")
+        self.progress.update(self.task, completed=done_s, info=info)
+
+    def __enter__(self) -> _View:
+        self.progress.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.progress.stop()
+
+
+def acquire(
+    rd: RunDir,
+    *,
+    imu_port: str,
+    rate_hz: float,
+    duration_s: float,
+    settings: dict[str, Any],
+    baudrate: int = 921600,
+    configure_imu: bool = False,
+    progress: bool = True,
+    config_extra: dict[str, Any] | None = None,
+) -> Window:
+    """Read `duration_s` device seconds (samples + lost samples over the rate) from the IMU; raw bytes
+    go to imu.raw as they arrive, the window's index range to events.jsonl. A signal ends the
+    reading early (`Window.stop` says which). `settings`: what the estimator needs (latitude,
+    method, sway period, simulate) — stored in the start event so replay finds it."""
+    from northfinder.drivers.imu import Imu, ImuBlock
+
+    rd.write_json(CONFIG, {"kind": KIND, "argv": sys.argv, **settings, **(config_extra or {})})
+    stop = StopFlag()
+    blocks: list[Any] = []
+    first = last = None
+    with stop.installed():
+        try:
+            imu = Imu(imu_port, baudrate=baudrate, raw_log=rd.imu_raw_path, rate_hz=rate_hz, timeout_s=5.0)
+        except OSError as exc:  # serial.SerialException is an OSError
+            raise DeviceError("imu", imu_port, f"cannot open it ({exc}); check the port") from None
+        with imu:
+            if configure_imu:
+                imu.configure()  # read rate and gyro format back: the decoder must know them
+            start = {"event": "start", "kind": KIND, "utc": now_utc(), "duration_s": duration_s,
+                     "imu": {"port": imu_port, "rate_hz": imu.rate_hz, "rot_format": imu.rot_format,
+                             "rot_units": imu.rot_units},
+                     **settings}
+            rd.log_event(start)
+            rate = imu.rate_hz
+            n_total = int(round(duration_s * rate))
+            chunk = max(1, int(rate))  # 1 s of device time per read: few wakeups at a large time scale
+            with _View(duration_s, progress) as view:
+                while not stop:
+                    need = n_total if first is None else n_total - (last - first + 1)
+                    if need <= 0:
+                        break
+                    block = imu.read(min(chunk, need), timeout_s=5.0 + chunk / rate)
+                    check_stream(block, imu_port)
+                    if first is None:
+                        first = int(block.sample_index[0])
+                    if int(block.sample_index[-1]) - first + 1 > n_total:  # a gap overshot the window
+                        block = _select(block, first, first + n_total - 1)
+                    if len(block):
+                        blocks.append(block)
+                        last = int(block.sample_index[-1])
+                    view.update((last - first + 1) / rate if last is not None else 0.0, duration_s, imu.stats)
+            stats = imu.stats.as_dict()
+    # port closed: imu.raw is complete on disk
+    complete = not stop
+    if not blocks:
+        rd.log_event({"event": "end", "complete": False, "imu": {"samples": 0}})
+        raise _abort_or(stop, rd, "no IMU samples were read")
+    block = ImuBlock(np.concatenate([b.sample_index for b in blocks]), np.concatenate([b.gyro_rad_s for b in blocks]),
+                     np.concatenate([b.accel_g for b in blocks]), np.concatenate([b.status for b in blocks]),
+                     np.concatenate([b.temperature_c for b in blocks]), 0, rate)
+    lost = int(block.sample_index[-1] - block.sample_index[0] + 1 - len(block))
+    end = {"event": "end", "complete": complete, "utc": now_utc(),
+           "imu": {"first_index": int(block.sample_index[0]), "last_index": int(block.sample_index[-1]),
+                   "samples": len(block), "lost_samples": lost, "stats": stats}}
+    rd.log_event(end)
+    return Window(block, start, end, stop)
+
+
+def _abort_or(stop: StopFlag, rd: RunDir, what: str) -> Exception:
+    if not stop:
+        return InputError(what)
+    err = RunAborted(f"run stopped by {signal.Signals(stop.signum).name}; {what}; the data is saved in "
+                     f"{rd.path} (northfinder replay {rd.path})")
+    if stop.signum == signal.SIGTERM:
+        err.exit_code = 143
+    return err
+
+
+# ---------------------------------------------------------------------------------------------
+# The simulator's truth log (docs/simulator.md)
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class ShipTruth:
+    """Truth rows (heading unwrapped) and the IMU client's connect anchor."""
+
+    t_s: np.ndarray
+    heading_deg: np.ndarray
+    pitch_deg: np.ndarray
+    roll_deg: np.ndarray
+    connect: dict[str, Any] | None
+    grid_events: int
+    header: dict[str, Any]
+
+    def at(self, t_s: float, what: str) -> float:
+        return float(np.interp(t_s, self.t_s, getattr(self, what)))
+
+
+def read_truth_log(path: Path) -> ShipTruth:
+    """Parse firmware-sim's truth log; a torn last line is ignored. InputError naming the file."""
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise InputError(f"{path}: the simulator's truth log is missing") from None
+    header: dict[str, Any] = {}
+    rows: list[tuple[float, float, float, float]] = []
+    connect = None
+    grid = 0
+    for line in lines:
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        kind = rec.get("type")
+        if kind == "truth":
+            rows.append((rec["t_device_s"], rec["heading_deg"], rec["pitch_deg"], rec["roll_deg"]))
+        elif kind == "header" and not header:
+            header = rec
+        elif kind == "event" and rec.get("event") == "imu_connect" and connect is None:
+            connect = rec
+        elif kind == "event" and rec.get("event") == "imu_grid" and connect is not None:
+            grid += 1
+    if not rows:
+        raise InputError(f"{path}: the truth log has no truth rows")
+    arr = np.array(sorted(rows), dtype=float)
+    return ShipTruth(arr[:, 0], np.rad2deg(np.unwrap(np.deg2rad(arr[:, 1]))), arr[:, 2], arr[:, 3],
+                     connect, grid, header)
+
+
+def first_sequence(raw: bytes) -> int:
+    """Sequence number of the first format-A frame decoded from a raw IMU log."""
+    from northfinder.codecs.kvh import KvhDecoder
+
+    out = KvhDecoder().feed(raw[: 1 << 16])
+    if not len(out):
+        raise InputError("imu.raw holds no format-A frame")
+    return int(out.frames["sequence"][0])
+
+
+def truth_at_end(rd: RunDir, start: dict[str, Any], first_index: int, last_index: int) -> dict[str, Any]:
+    """The ship's attitude at the end of the window's last sample (and at its start), from the truth
+    log; the device time comes from the imu_connect anchor and the first frame's sequence number."""
+    truth = read_truth_log(rd.file(TRUTH_LOG))
+    rate = float(start["imu"]["rate_hz"])
+    c = truth.connect
+    if c is None:
+        raise InputError(f"{rd.path}: the truth log has no imu_connect event; cannot place the samples in time")
+    if truth.grid_events:
+        raise InputError(f"{rd.path}: the simulated IMU's sample grid moved after this client connected "
+                         "(imu_grid event in the truth log); its samples no longer map to device time")
+    if float(c["rate_hz"]) != rate:
+        raise InputError(f"{rd.path}: the truth log's IMU rate {c['rate_hz']:g} Hz is not the run's {rate:g} Hz")
+    s0 = first_sequence(rd.file(IMU_RAW).read_bytes())
+    k_first = int(c["k0"]) + (s0 - int(c["sequence0"])) % 128
+    t_of_end = lambda u: float(c["t0_device_s"]) + (k_first - int(c["k0"]) + u) / rate  # noqa: E731
+    t_end = t_of_end(last_index)
+    t_start = t_of_end(first_index - 1)
+    if t_end > truth.t_s[-1] + 1.0 / float(truth.header.get("truth_rate_hz", 50.0)):
+        raise InputError(f"{rd.path}: the truth log ends at {truth.t_s[-1]:.3f} s, before the window's end "
+                         f"at {t_end:.3f} s of device time")
+    return {
+        "heading_deg": truth.at(t_end, "heading_deg") % 360.0,
+        "pitch_deg": truth.at(t_end, "pitch_deg"),
+        "roll_deg": truth.at(t_end, "roll_deg"),
+        "heading_at_start_deg": truth.at(t_start, "heading_deg") % 360.0,
+        "t_device_s": t_end,
+        "t_start_device_s": t_start,
+        "time_alignment": {"method": "truth-log", "k0": int(c["k0"]), "sequence0": int(c["sequence0"]),
+                           "first_sequence": s0, "k_first": k_first},
+        "sway": truth.header.get("sway"),
+        "lever_arm_m": (truth.header.get("imu") or {}).get("lever_arm_b_m"),
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# Result assembly: the one function live and replay call
+# ---------------------------------------------------------------------------------------------
+def compute_swaying_result(block: Any, start: dict[str, Any], end: dict[str, Any], truth: dict[str, Any] | None,
+                           *, complete: bool = True) -> tuple[dict[str, Any], Any]:
+    """The estimator (start["method"]) and the static coarse alignment on the window's samples →
+    (result dict, the SwayingSolution for the report)."""
+    if len(block) == 0:
+        raise InputError("no IMU samples were read; nothing to align")
+    rate = float(start["imu"]["rate_hz"])
+    lat = float(start["latitude_deg"])
+    sol = align_swaying_block(block, lat, rate_hz=rate, method=start["method"],
+                              max_sway_period_s=float(start["max_sway_period_s"]),
+                              height_m=float(start.get("height_m", 0.0)))
+    coarse = coarse_align(block.gyro_rad_s, block.accel_g, rate, lat)
+    main = {"heading_deg": sol.heading_deg, "heading_std_deg": sol.heading_std_deg, "pitch_deg": sol.pitch_deg,
+            "roll_deg": sol.roll_deg, "pitch_std_deg": sol.pitch_std_deg, "roll_std_deg": sol.roll_std_deg}
+    result: dict[str, Any] = {
+        "schema": SCHEMA,
+        "kind": KIND,
+        "complete": bool(complete),
+        "method": sol.method,
+        **main,
+        "duration_device_s": sol.duration_device_s,
+        "latitude_deg": lat,
+        "max_sway_period_s": float(start["max_sway_period_s"]),
+        "minimum_duration_s": minimum_duration_s(float(start["max_sway_period_s"])),
+        "methods": {
+            sol.method: dict(main),
+            "coarse": {"heading_deg": coarse.heading_deg, "heading_std_deg": coarse.heading_std_deg,
+                       "pitch_deg": coarse.pitch_deg, "roll_deg": coarse.roll_deg,
+                       "note": "static analytic coarse alignment (window means); its σ is the "
+                               "still-base noise limit and ignores the sway", **coarse.diagnostics},
+        },
+        "diagnostics": sol.diagnostics,
+        "imu": {**end["imu"], "rate_hz": rate},
+    }
+    if truth is not None:
+        result["truth"] = {k: v for k, v in truth.items() if k != "time_alignment"}
+        result["time_alignment"] = truth["time_alignment"]
+        result["error_deg"] = float(wrap_deg_180(sol.heading_deg - truth["heading_deg"]))
+        for m in result["methods"].values():
+            m["error_deg"] = float(wrap_deg_180(m["heading_deg"] - truth["heading_deg"]))
+    return json.loads(json.dumps(jsonable(result), allow_nan=False)), sol
+
+
+def result_from_run(rd: RunDir, block: Any, start: dict[str, Any], end: dict[str, Any],
+                    complete: bool) -> tuple[dict[str, Any], Any]:
+    """The result of a run from its window's samples (live: the driver's arrays; replay: decoded)."""
+    truth = None
+    if start.get("simulate"):
+        truth = truth_at_end(rd, start, int(end["imu"]["first_index"]), int(end["imu"]["last_index"]))
+    return compute_swaying_result(block, start, end, truth, complete=complete)
+
+
+def replay_swaying_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
+    """Recompute an `align --mode swaying` run's result from imu.raw and the events alone.
+
+    Returns (result, complete); bit-identical to the live result.json for the same run.
+    """
+    from northfinder.drivers.imu import decode_imu_stream
+
+    rd = RunDir(run_dir, create=False)
+    events = rd.events()
+    start = next((e for e in events if e.get("event") == "start"), None)
+    if start is None or start.get("kind") != KIND:
+        raise InputError(f"{rd.path}: not an `align --mode swaying` run ({EVENTS} has no start event of "
+                         f"kind {KIND})")
+    end = next((e for e in events if e.get("event") == "end"), None)
+    if end is None or not end["imu"].get("samples"):
+        raise InputError(f"{rd.path}: the run has no window of samples (killed before it saved one); "
+                         "nothing to recompute")
+    imu_cfg = start["imu"]
+    raw = rd.file(IMU_RAW).read_bytes() if rd.file(IMU_RAW).exists() else b""
+    block, _ = decode_imu_stream(raw, imu_cfg["rate_hz"], imu_cfg["rot_format"], imu_cfg["rot_units"])
+    block = _select(block, int(end["imu"]["first_index"]), int(end["imu"]["last_index"]))
+    complete = bool(end.get("complete"))
+    result, _ = result_from_run(rd, block, start, end, complete)
+    return result, complete
+
+
+# ---------------------------------------------------------------------------------------------
+# The report: the cone fit's residuals (the estimator gives no heading history)
+# ---------------------------------------------------------------------------------------------
+def cone_residuals(block: Any, sol: Any, max_sway_period_s: float) -> dict[str, np.ndarray]:
+    """Smoothed specific force in the initial body-inertial frame i_b0 against the fitted cone.
+
+    The estimator's model (docs/swaying.md, paper abstract step 2): in i_b0 the sway-free specific
+    force is g·u(t), u the local vertical turning about the Earth axis a at Ωe. With the solution's
+    vertical at t_end, u(t) = R(a, −Ωe·(t_end − t))·u(t_end). The data side is the velocity
+    increments in i_b0 averaged over 4 longest sway periods (a Blackman–Harris window, as the
+    estimator does) every period; residual = data − model [µg]. Drawn only: not in the result.
+    """
+    from scipy.signal import fftconvolve
+
+    rate = float(block.rate_hz)
+    dt = 1.0 / rate
+    full = np.arange(block.sample_index[0], block.sample_index[-1] + 1)
+    gyro = np.stack([np.interp(full, block.sample_index, block.gyro_rad_s[:, i]) for i in range(3)], axis=1)
+    acc = np.stack([np.interp(full, block.sample_index, block.accel_g[:, i]) for i in range(3)], axis=1)
+    dtheta = gyro * dt
+    dv = acc * (STANDARD_GRAVITY_M_S2 * dt)
+    q = attitude_quaternions(dtheta)
+    dv_ib0 = velocity_increments_ib0(q, dtheta, dv)
+    lw = int(round(4.0 * max_sway_period_s * rate))
+    x = 2.0 * np.pi * (np.arange(lw) + 0.5) / lw
+    h = 0.35875 - 0.48829 * np.cos(x) + 0.14128 * np.cos(2 * x) - 0.01168 * np.cos(3 * x)
+    h /= h.sum()
+    hop = max(1, int(round(max_sway_period_s * rate)))
+    f = np.stack([fftconvolve(dv_ib0[:, i], h[::-1], mode="valid")[::hop] for i in range(3)], axis=1) / dt
+    t_c = (np.arange(f.shape[0]) * hop + lw / 2.0) * dt
+    t_end = full.size * dt
+    axis = np.asarray(sol.earth_axis_ib0, dtype=float)
+    u_end = quat_to_dcm(q[-1]) @ np.asarray(sol.c_b_n)[2]  # C_b^{i_b0}(t_end)·(up in b)
+    ang = -OMEGA_EARTH_RAD_S * (t_end - t_c)[:, None]
+    u = (u_end * np.cos(ang) + np.cross(axis, u_end) * np.sin(ang)
+         + axis * (axis @ u_end) * (1.0 - np.cos(ang)))  # Rodrigues, vectorized
+    g = np.linalg.norm(f, axis=1).mean()
+    res = (f - g * u) / STANDARD_GRAVITY_M_S2 * 1e6
+    return {"t_s": t_c, "residual_ug": res, "gyro_dps": block.gyro_rad_s[::max(1, int(rate // 20))] / DEG,
+            "t_gyro_s": (block.sample_index[::max(1, int(rate // 20))] - block.sample_index[0]) / rate}
+
+
+def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], path: str | Path) -> Path:
+    """report.png: the body rates (the sway), the cone-fit residuals, the result and its truth."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 1, figsize=(9, 7))
+    ax = axes[0]
+    for j, name in enumerate("xyz"):
+        ax.plot(resid["t_gyro_s"], resid["gyro_dps"][:, j], lw=0.6, label=f"gyro {name}")
+    ax.set_ylabel("body rate [deg/s]")
+    ax.set_xlabel("device time since the first sample [s]")
+    title = (f"align --mode swaying ({result['method']}): {result['heading_deg']:.3f}° ± "
+             f"{result['heading_std_deg']:.3f}° (1σ)")
+    if "truth" in result:
+        title += f", truth {result['truth']['heading_deg']:.3f}°, error {result['error_deg']:+.3f}°"
+    ax.set_title(title, fontsize=10)
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    ax = axes[1]
+    for j, name in enumerate(("x", "y", "z")):
+        ax.plot(resid["t_s"], resid["residual_ug"][:, j], marker=".", label=f"i_b0 {name}")
+    ax.set_ylabel("cone-fit residual [µg]")
+    ax.set_xlabel("window centre, device time [s]")
+    ax.set_title("smoothed specific force in i_b0 − fitted Earth-rate cone (4-period Blackman–Harris)",
+                 fontsize=9)
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    out = Path(path)
+    fig.savefig(out, dpi=80)
+    plt.close(fig)
+    return out
+
+
+def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool = True) -> dict[str, Any]:
+    """Align on the window (the function replay uses), save result.json (+ --json) and report.png.
+    A window cut short by a signal is aligned if it is long enough, then RunAborted (exit 130/143)."""
+    complete = not w.stop
+    try:
+        result, sol = result_from_run(rd, w.block, w.start, w.end, complete)
+    except InputError as exc:
+        if complete:
+            raise
+        raise _abort_or(w.stop, rd, str(exc)) from None
+    rd.write_json(RESULT, result)
+    if json_path:
+        RunDir(Path(json_path).parent).write_json(Path(json_path).name, result)
+    if report:
+        with contextlib.suppress(ValueError):  # a window too short for one residual point: no plot
+            write_swaying_report(result, cone_residuals(w.block, sol, float(w.start["max_sway_period_s"])),
+                                 rd.report_path)
+    if not complete:
+        raise _abort_or(w.stop, rd, f"the result of the {result['duration_device_s']:.1f} s read is saved")
+    return result
+
+
+__all__ = ["KIND", "METHODS", "ShipSim", "ShipSimProcess", "acquire", "compute_swaying_result", "finish",
+           "load_bench", "parse_sway", "replay_swaying_run", "result_from_run", "write_swaying_report"]

@@ -1,0 +1,175 @@
+"""`northfinder align --mode swaying`: true north from a strapdown IMU on a swaying base.
+
+`--config bench.toml` reads the IMU of `[imu]` (and the latitude of `[site]`, or `--latitude`);
+`--simulate` starts firmware-sim's ship scenario (the IMU alone on a swaying ship, the reference
+sway unless `--sway` says otherwise) and reports the error against its truth log. The inertial-frame
+cone fit gives the result; the static coarse alignment on the same samples is under
+`methods.coarse` (docs/result-schema-align.md, "## swaying"). Every run leaves a run directory
+that `northfinder replay` recomputes bit for bit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from northfinder.align import swaying_run as sr
+from northfinder.align.swaying import METHODS, minimum_duration_s
+from northfinder.errors import InputError
+from northfinder.rundir import RunDir
+
+
+def _add(parser: argparse.ArgumentParser, flag: str, **kwargs: Any) -> None:
+    """Add a flag unless another align mode already did (`--heading`, `--latitude` are shared)."""
+    if flag not in parser._option_string_actions:
+        parser.add_argument(flag, **kwargs)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The swaying mode's own flags on the `align` parser."""
+    _add(parser, "--sway", default=None, metavar="SPEC",
+         help=f"swaying, simulated: \"roll=AMP:PERIOD,pitch=AMP:PERIOD,yaw=AMP:PERIOD,heave=AMP_M:PERIOD\" "
+         f"(deg or m, s; 'none' = still ship; default the reference {sr.REFERENCE_SWAY!r})")
+    _add(parser, "--sway-period", type=float, default=None, metavar="S",
+         help=f"swaying: the longest sway period [s]; the smoothing window is 4 of them and the window "
+         f"must hold 8 (default: from --sway when simulated, else {sr.DEFAULT_SWAY_PERIOD_S:g})")
+    _add(parser, "--method", choices=METHODS, default=None,
+         help="swaying: cone (constrained fit, default) | cone-gls (plus a noise-weighted step) | circle "
+         "(the paper's free space-circle fit)")
+    _add(parser, "--lever-arm", default=None, metavar="X,Y,Z",
+         help="swaying, simulated: the IMU's position from the ship's centre of rotation [m] (default "
+         "1,2,1.5); gnss: the antenna's position in IMU axes [m]")
+    _add(parser, "--heading", type=float, default=None, metavar="DEG", help="simulated (mean) heading")
+    _add(parser, "--latitude", type=float, default=None, metavar="DEG",
+         help="site latitude (simulated; on hardware it overrides [site] latitude_deg)")
+
+
+def parse_lever_arm(text: str | None) -> tuple[float, float, float] | None:
+    """'1,2,1.5' → (1.0, 2.0, 1.5); InputError naming the flag otherwise."""
+    if text is None:
+        return None
+    try:
+        values = tuple(float(p) for p in str(text).split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise InputError(f"--lever-arm {text}: give three numbers X,Y,Z in metres (IMU axes x right, "
+                         "y forward, z up), e.g. --lever-arm 1,2,1.5")
+    return values  # type: ignore[return-value]
+
+
+def _check(args: argparse.Namespace) -> tuple[float, dict[str, list[list[float]]], float]:
+    """Every mistake one can see before a device is opened: (duration, sway, longest period)."""
+    if bool(args.simulate) == bool(args.config):
+        raise InputError("give either --config BENCH_TOML (a real IMU) or --simulate")
+    if not args.simulate:
+        for flag in ("sway", "heading", "grade", "seed", "time_scale", "lever_arm"):
+            if getattr(args, flag, None) is not None:
+                raise InputError(f"--{flag.replace('_', '-')} is for --simulate; on a real ship give "
+                                 "--sway-period for the longest sway period")
+        if args.fault:
+            raise InputError("--fault is for --simulate")
+    sway = sr.parse_sway(args.sway if args.sway is not None else sr.REFERENCE_SWAY) if args.simulate else {}
+    period = args.sway_period if args.sway_period is not None else sr.longest_period_s(sway)
+    if not (math.isfinite(period) and 0.0 < period <= 120.0):
+        raise InputError(f"--sway-period {period:g}: give the longest sway period in seconds (0 … 120)")
+    duration = sr.DEFAULT_DURATION_S if args.duration is None else float(args.duration)
+    need = minimum_duration_s(period)
+    if not math.isfinite(duration) or duration < need:
+        raise InputError(f"--duration {duration:g}: too short for the swaying alignment, which needs at least "
+                         f"{need:.0f} device seconds (two smoothing windows of 4 × the {period:g} s longest "
+                         "sway period); 300 s gives ~0.05° with a navigation-grade IMU")
+    if args.latitude is not None and not (math.isfinite(args.latitude) and abs(args.latitude) <= 85.0):
+        raise InputError(f"--latitude {args.latitude:g}: use −85 … 85 degrees (north positive); nearer the "
+                         "pole the Earth axis has no usable horizontal projection")
+    if args.simulate and args.time_scale is not None and not (math.isfinite(args.time_scale)
+                                                             and args.time_scale > 0):
+        raise InputError(f"--time-scale {args.time_scale:g}: use a factor greater than 0")
+    return duration, sway, float(period)
+
+
+def default_out() -> Path:
+    return Path("runs") / datetime.now(UTC).strftime("align-swaying-%Y%m%dT%H%M%SZ")
+
+
+def run(args: argparse.Namespace) -> int:
+    duration, sway, period = _check(args)
+    rd = RunDir(args.out or default_out())
+    t_wall = time.monotonic()
+    settings: dict[str, Any] = {"method": args.method or "cone", "max_sway_period_s": period}
+    if args.simulate:
+        sim = sr.ShipSim(
+            sway=sr.format_sway(sway),
+            lever_arm_m=parse_lever_arm(args.lever_arm) or sr.SIM_LEVER_ARM_M,
+            heading_deg=sr.SIM_HEADING_DEG if args.heading is None else float(args.heading),
+            latitude_deg=sr.SIM_LATITUDE_DEG if args.latitude is None else float(args.latitude),
+            grade=args.grade or "nav",
+            seed=1 if args.seed is None else int(args.seed),
+            time_scale=args.time_scale or sr.SIM_DEFAULT_TIME_SCALE,
+            faults=tuple(args.fault),
+            truth_log=str((rd.path / sr.TRUTH_LOG).resolve()),
+        )
+        settings.update(latitude_deg=sim.latitude_deg, height_m=0.0, simulate=sim.to_dict())
+        with sr.ShipSimProcess(sim) as endpoints:  # type: ignore[arg-type]
+            window = sr.acquire(rd, imu_port=str(endpoints["imu"]), rate_hz=1000.0, duration_s=duration,
+                                settings=settings, config_extra={"endpoints": endpoints})
+        # the simulator has stopped (its truth log is complete) before the estimator takes the CPU
+    else:
+        imu = sr.load_bench(args.config, args.latitude)
+        if abs(imu.latitude_deg) > 85.0:
+            raise InputError(f"{imu.source}: [site] latitude_deg = {imu.latitude_deg:g}: the swaying alignment "
+                             "needs −85 … 85 degrees")
+        settings.update(latitude_deg=imu.latitude_deg, height_m=imu.height_m, simulate=None)
+        window = sr.acquire(rd, imu_port=imu.port, rate_hz=imu.rate_hz, baudrate=imu.baudrate,
+                            duration_s=duration, settings=settings, configure_imu=True,
+                            config_extra={"bench": imu.__dict__})
+    t_read = time.monotonic()
+    result = sr.finish(rd, window, json_path=args.json)
+    print_summary(result, run_dir=rd.path)
+    t_end = time.monotonic()
+    print(f"wall time {t_end - t_wall:.1f} s: device (and simulator) {t_read - t_wall:.1f} s, estimator and "
+          f"report {t_end - t_read:.1f} s", file=sys.stderr)
+    return 0
+
+
+def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
+    """The rich summary: heading ± σ, pitch, roll, truth and error, the coarse alignment for contrast."""
+    from rich.console import Console
+    from rich.table import Table
+
+    if console is None:
+        console = Console()
+        if not console.is_terminal:
+            console = Console(width=max(console.width, 120))
+    head = Table(title="northfinder align --mode swaying", show_header=False, box=None)
+    head.add_row("heading", f"[bold]{result['heading_deg']:.4f}° ± {result['heading_std_deg']:.4f}°[/] "
+                 f"(1σ, {result['method']})")
+    head.add_row("pitch, roll", f"{result['pitch_deg']:+.3f}° ± {result['pitch_std_deg']:.3f}°, "
+                 f"{result['roll_deg']:+.3f}° ± {result['roll_std_deg']:.3f}° (at the end of the window)")
+    imu = result["imu"]
+    head.add_row("device time", f"{result['duration_device_s']:.1f} s, {imu['samples']} samples, lost "
+                 f"{imu['lost_samples']}, bad CRC {imu['stats']['bad_crc']}")
+    if "truth" in result:
+        tr = result["truth"]
+        ratio = abs(result["error_deg"]) / result["heading_std_deg"] if result["heading_std_deg"] else math.inf
+        head.add_row("truth", f"heading {tr['heading_deg']:.4f}°, pitch {tr['pitch_deg']:+.3f}°, roll "
+                     f"{tr['roll_deg']:+.3f}° at device time {tr['t_device_s']:.3f} s")
+        head.add_row("error", f"[bold]{result['error_deg']:+.4f}°[/] ({ratio:.2f} σ)")
+    if not result.get("complete", True):
+        head.add_row("[red]INCOMPLETE[/]", "stopped before the end of the window")
+    console.print(head)
+    t = Table(title="on the same samples (* = the result)")
+    for col in ("method", "heading [deg]", "1σ [deg]", "error [deg]"):
+        t.add_column(col, justify="right")
+    for name, m in result["methods"].items():
+        err = m.get("error_deg")
+        t.add_row(name + (" *" if name == result["method"] else ""), f"{m['heading_deg']:.4f}",
+                  f"{m['heading_std_deg']:.4f}", "—" if err is None else f"{err:+.4f}")
+    console.print(t)
+    if run_dir is not None:
+        console.print(f"run directory: {run_dir}")
