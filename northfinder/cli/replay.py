@@ -1,14 +1,17 @@
 """`northfinder replay RUN_DIR`: recompute a run's result from its raw logs alone.
 
-Decodes imu.raw and can.asc with the drivers' pure decoders, cuts them by the events log, and
-runs the same per-position means and estimator as the live run; then compares with the run's
-result.json. Exit 0 for a complete run, 1 for an incomplete one (the count of positions is
-printed), the usual error codes for a directory that is not a run.
+A `find` run: decodes imu.raw and can.asc with the drivers' pure decoders, cuts them by the
+events log, and runs the same per-position means and estimator as the live run. An `align` run
+(its config.json says `"kind": "align-gnss"` or `"align-swaying"`): the mode's own replay
+function recomputes it from imu.raw (and gnss.nmea) and the events. Either way the result is
+compared with the run's result.json. Exit 0 for a complete run, 1 for an incomplete one, the
+usual error codes for a directory that is not a run.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 from pathlib import Path
 from typing import Any
@@ -17,6 +20,12 @@ from northfinder import config as bench
 from northfinder.rundir import RESULT, RunDir, jsonable, replay
 
 INCOMPLETE_EXIT = 1
+
+# run kind -> (module with the replay function, its name, module with print_summary)
+ALIGN_REPLAYS = {
+    "align-gnss": ("northfinder.align.gnss_run", "replay_gnss_run", "northfinder.cli.align_gnss"),
+    "align-swaying": ("northfinder.align.swaying_run", "replay_swaying_run", "northfinder.cli.align_swaying"),
+}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -48,7 +57,42 @@ def differences(live: dict[str, Any], again: dict[str, Any], prefix: str = "") -
     return out
 
 
+def _run_kind(run_dir: str | Path) -> str:
+    path = Path(run_dir) / "config.json"
+    try:
+        return str(json.loads(path.read_text(encoding="utf-8")).get("kind", "find"))
+    except (OSError, ValueError, AttributeError):
+        return "find"  # the find replay names what is missing
+
+
+def _replay_align(args: argparse.Namespace, kind: str) -> int:
+    module_name, function_name, summary_module = ALIGN_REPLAYS[kind]
+    result, complete = getattr(importlib.import_module(module_name), function_name)(args.run_dir)
+    rd = RunDir(args.run_dir, create=False)
+    again = json.loads(json.dumps(jsonable(result)))
+    live_path = rd.file(RESULT)
+    if live_path.exists():
+        diff = differences(json.loads(live_path.read_text(encoding="utf-8")), again)
+        verdict = ("identical to the live result.json" if not diff
+                   else f"DIFFERS from the live result.json in {len(diff)} values: {', '.join(diff[:6])}")
+    else:
+        verdict = "no live result.json to compare with"
+    state = "complete" if complete else "incomplete"
+    heading = again.get("heading_deg")
+    sigma = again.get("heading_std_deg")
+    shown = f"{heading:.6f}° ± {sigma:.6f}°" if heading is not None and sigma is not None else "none"
+    print(f"{rd.path}: {state} {kind} run; replayed heading {shown}, {verdict}")
+    if not args.quiet:
+        importlib.import_module(summary_module).print_summary(again)
+    if args.json:
+        RunDir(Path(args.json).parent, create=True).write_json(Path(args.json).name, again)
+    return 0 if complete else INCOMPLETE_EXIT
+
+
 def run(args: argparse.Namespace) -> int:
+    kind = _run_kind(args.run_dir)
+    if kind in ALIGN_REPLAYS:
+        return _replay_align(args, kind)
     outcome = replay(args.run_dir, method=args.method)
     rd = RunDir(args.run_dir, create=False)
     state = "complete" if outcome.complete else "incomplete"
