@@ -10,6 +10,11 @@ Layout (file names are fixed so that `northfinder replay RUN_DIR` finds them)::
     result.json      the result (docs/result-schema.md)
     report.png       the plots (northfinder.report)
 
+A run resumed with `northfinder find --resume RUN_DIR` is a second *session*: its devices are
+new streams (the IMU's sample counter and the CAN counter start again), so it writes its own
+`imu-2.raw`, `can-2.asc`, `turntable-2.log` (session k: `-k`), and its `start` event says which;
+replay decodes each session's logs for the position events that follow its start event.
+
 The live run and replay compute the per-position means through the same function
 (:func:`position_means`) from the same decoded arrays, so replay reproduces the live numbers
 bit for bit.
@@ -130,9 +135,11 @@ def compute_result(
     truth: dict[str, float] | None = None,
     complete: bool = True,
     positions_planned: int | None = None,
+    faults: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The result dict (docs/result-schema.md) from per-position means: every method's heading,
-    the tilt, the per-position data, and the error against the truth for a simulated run."""
+    the tilt, the per-position data, the error against the truth for a simulated run, and what
+    went wrong on the way (`faults`, from :func:`faults_summary` of the events log)."""
     if len(positions) < 3:
         raise InputError(f"only {len(positions)} positions measured; a heading needs at least 3")
     sol = _solve(positions, latitude_deg, method, height_m)
@@ -162,6 +169,8 @@ def compute_result(
         },
         "positions": [asdict(p) for p in positions],
     }
+    if faults is not None:
+        result["faults"] = faults
     if truth is not None:
         keys = ("heading_deg", "pitch_deg", "roll_deg", "latitude_deg")
         result["truth"] = {k: float(truth[k]) for k in keys}
@@ -169,11 +178,22 @@ def compute_result(
     return result
 
 
-class RunDir:
-    """A run directory being written (or read back). Each write is flushed and fsynced."""
+def session_file(name: str, session: int) -> str:
+    """`imu.raw` for session 1, `imu-2.raw` for session 2 (a resumed run), …"""
+    if int(session) <= 1:
+        return name
+    stem, dot, suffix = name.partition(".")
+    return f"{stem}-{int(session)}{dot}{suffix}"
 
-    def __init__(self, path: str | Path, *, create: bool = True):
+
+class RunDir:
+    """A run directory being written (or read back). Each write is flushed and fsynced.
+
+    `session` (1, or k for the k-th `--resume`) picks the raw log names (session_file)."""
+
+    def __init__(self, path: str | Path, *, create: bool = True, session: int = 1):
         self.path = Path(path)
+        self.session = int(session)
         if create:
             try:
                 self.path.mkdir(parents=True, exist_ok=True)
@@ -189,15 +209,15 @@ class RunDir:
 
     @property
     def imu_raw_path(self) -> Path:
-        return self.file(IMU_RAW)
+        return self.file(session_file(IMU_RAW, self.session))
 
     @property
     def can_log_path(self) -> Path:
-        return self.file(CAN_LOG)
+        return self.file(session_file(CAN_LOG, self.session))
 
     @property
     def transcript_path(self) -> Path:
-        return self.file(TRANSCRIPT)
+        return self.file(session_file(TRANSCRIPT, self.session))
 
     @property
     def report_path(self) -> Path:
@@ -245,6 +265,62 @@ class RunDir:
         return out
 
 
+_IMU_COUNTERS = ("frames", "bad_crc", "resyncs", "sequence_gaps", "lost_samples", "skipped_bytes")
+_ACCEL_COUNTERS = ("pairs", "unpaired", "counter_gaps", "lost_samples", "emcy", "heartbeats", "malformed")
+
+
+def faults_summary(events: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """What went wrong during a run and what was done about it, from its events log alone (the live
+    run and replay both call this, so the result's `faults` replays exactly):
+
+    - `remeasured`: every position measured again, with the attempt and the reason;
+    - `stage_errors`: stage errors on moves (stall / following error) and the retry;
+    - `imu`: the decoder's stream counters summed over sessions (bad CRC, resyncs, gaps, lost
+      samples), the reconnects, and the samples lost inside the kept dwells;
+    - `accel`: the node's counters, its emergencies, the kept dwells' lost samples, and the
+      positions whose dwell saw no heartbeat (device time ≥ 2.5 heartbeat periods of 1 s);
+    - `sessions`: how many times the run was started (1 + resumes).
+    """
+    stats = [e for e in events if e.get("event") == "stats"]
+    kept = [e for e in events if e.get("event") == "position"]
+    imu = {k: int(sum(int(e.get("imu", {}).get(k, 0)) for e in stats)) for k in _IMU_COUNTERS}
+    imu["reconnects"] = int(sum(int(e.get("imu_reconnects", 0)) for e in stats))
+    imu["lost_in_dwells"] = int(sum(int(e["imu"]["lost"]) for e in kept))
+    accel: dict[str, Any] = {
+        k: int(sum(int(e.get("accel", {}).get(k, 0)) for e in stats)) for k in _ACCEL_COUNTERS
+    }
+    accel["lost_in_dwells"] = int(sum(int(e["accel"]["lost"]) for e in kept))
+    accel["emergencies"] = [m for e in stats for m in e.get("emergencies", [])]
+    silent: list[int] = []
+    rate_hz = 0.0
+    for e in events:
+        if e.get("event") == "start":
+            rate_hz = float(e.get("accelerometer", {}).get("rate_hz") or 0.0)
+        elif e.get("event") == "position" and rate_hz > 0 and e["accel"].get("heartbeats") == 0:
+            if (e["accel"]["samples"] + e["accel"]["lost"]) / rate_hz >= 2.5:
+                silent.append(int(e["index"]))
+    accel["heartbeat_lost_positions"] = silent
+    return {
+        "sessions": max(1, sum(e.get("event") == "start" for e in events)),
+        "remeasured": [
+            {"index": int(e["index"]), "attempt": int(e["attempt"]), "reason": str(e["reason"])}
+            for e in events
+            if e.get("event") == "remeasure"
+        ],
+        "stage_errors": [
+            {
+                "target_deg": e.get("target_deg"),
+                "attempt": int(e.get("attempt", 1)),
+                "error": str(e.get("error")),
+            }
+            for e in events
+            if e.get("event") == "stage_error"
+        ],
+        "imu": imu,
+        "accel": accel,
+    }
+
+
 def jsonable(obj: Any) -> Any:
     """numpy scalars/arrays → Python; NaN/inf → None (JSON has no NaN)."""
     if isinstance(obj, dict):
@@ -271,31 +347,48 @@ class ReplayOutcome:
     positions: list[PositionMeans] = field(default_factory=list)
 
 
+def _decode_session(rd: RunDir, session: int, start: dict[str, Any]) -> tuple[Any, Any]:
+    """One session's IMU samples and accelerometer samples, decoded from its own raw logs."""
+    from northfinder.drivers.accelerometer import decode_can_log
+    from northfinder.drivers.imu import decode_imu_stream
+
+    imu_cfg = start["imu"]
+    raw_path = rd.file(session_file(IMU_RAW, session))
+    raw = raw_path.read_bytes() if raw_path.exists() else b""
+    block, _ = decode_imu_stream(raw, imu_cfg["rate_hz"], imu_cfg["rot_format"], imu_cfg["rot_units"])
+    can_path = rd.file(session_file(CAN_LOG, session))
+    accel_block = None
+    if can_path.exists():
+        accel_block, _ = decode_can_log(can_path, node_id=start["accelerometer"]["node_id"])
+    return block, accel_block
+
+
 def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
     """Recompute the result of a run from its raw logs alone.
 
     Decodes imu.raw and can.asc with the drivers' pure decoders, cuts them by the sample ranges in
     events.jsonl, and feeds the same per-position means and estimator as the live run.
     """
-    from northfinder.drivers.accelerometer import decode_can_log
-    from northfinder.drivers.imu import decode_imu_stream
-
     rd = RunDir(path, create=False)
     events = rd.events()
-    start = next((e for e in events if e.get("event") == "start"), None)
-    if start is None:
+    starts = [e for e in events if e.get("event") == "start"]
+    if not starts:
         raise InputError(f"{rd.path}: {EVENTS} has no start event; the run never began")
+    start = starts[0]
     pos_events = [e for e in events if e.get("event") == "position"]
     complete = any(e.get("event") == "end" and e.get("complete") for e in events)
-    imu_cfg = start["imu"]
-    raw = rd.imu_raw_path.read_bytes() if rd.imu_raw_path.exists() else b""
-    block, _ = decode_imu_stream(raw, imu_cfg["rate_hz"], imu_cfg["rot_format"], imu_cfg["rot_units"])
-    if rd.can_log_path.exists():
-        accel_block, _ = decode_can_log(rd.can_log_path, node_id=start["accelerometer"]["node_id"])
-    else:
-        accel_block = None
     positions: list[PositionMeans] = []
-    for ev in pos_events:
+    session = 0
+    block = accel_block = None
+    imu_cfg = start["imu"]
+    for ev in events:
+        if ev.get("event") == "start":
+            session += 1
+            imu_cfg = ev["imu"]
+            block, accel_block = _decode_session(rd, session, ev)
+            continue
+        if ev.get("event") != "position" or block is None:
+            continue
         i0, i1 = ev["imu"]["first_index"], ev["imu"]["last_index"]
         sel = (block.sample_index >= i0) & (block.sample_index <= i1)
         if accel_block is not None:
@@ -325,5 +418,6 @@ def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
             truth=start.get("truth"),
             complete=complete,
             positions_planned=planned,
+            faults=faults_summary(events),
         )
     return ReplayOutcome(result, complete, len(positions), planned, positions)

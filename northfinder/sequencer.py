@@ -25,7 +25,8 @@ import numpy as np
 
 from northfinder.config import RunConfig, position_plan_deg
 from northfinder.constants import DPH
-from northfinder.errors import ConfigError, DeviceError
+from northfinder.drivers.turntable import StageError
+from northfinder.errors import ConfigError, DeviceError, NorthfinderError
 from northfinder.rundir import PositionMeans, RunDir, position_means
 
 log = logging.getLogger(__name__)
@@ -53,6 +54,47 @@ class Interrupted(Exception):
         self.positions = positions
         self.stage_state = stage_state
         super().__init__(f"stopped by {signal.Signals(signum).name} after {len(positions)} positions")
+
+
+class RunFailed(NorthfinderError):
+    """The run cannot go on (a position failed every attempt, the stage failed its retry); the
+    positions measured before are in `positions` and are saved by the caller."""
+
+    exit_code = 3
+
+    def __init__(self, message: str, positions: list[PositionMeans]):
+        self.positions = positions
+        super().__init__(message)
+
+
+DISTURBANCE_Z = 7.0
+"""A window mean this many of its own white-noise σ from the dwell's median is a disturbance:
+P(|z| > 7) ≈ 3e-12 per window, so a clean dwell of thousands of windows never trips it."""
+
+
+def disturbance_z(samples: np.ndarray, window: int, floor: float = 0.0) -> tuple[float, int]:
+    """Largest |window mean − median of the window means| in units of the white-noise σ of a window
+    mean, over every column; returns (z, window index).
+
+    A robust step/bump test (not from the papers: a plain outlier test on block means). At rest a
+    dwell's samples are white noise about a constant, so block means of `window` samples scatter
+    with σ/√window, where the per-sample σ is estimated from first differences (std(Δx)/√2 for
+    white noise), robustly by the median over blocks so that a bump inflates nothing. `floor` is
+    the smallest per-sample σ (a quantized channel's step/√12).
+    """
+    x = np.asarray(samples, dtype=np.float64)
+    if x.ndim == 1:
+        x = x[:, None]
+    n_win = x.shape[0] // int(window)
+    if n_win < 3:
+        return 0.0, -1
+    blocks = x[: n_win * window].reshape(n_win, window, x.shape[1])
+    means = blocks.mean(axis=1)  # [n_win, k]
+    sigma = np.median(np.std(np.diff(blocks, axis=1), axis=1), axis=0) / np.sqrt(2.0)  # [k]
+    sigma = np.maximum(sigma, floor)
+    z = np.abs(means - np.median(means, axis=0)) / (np.maximum(sigma, 1e-300) / np.sqrt(window))
+    j = int(np.argmax(z.max(axis=1)))
+    return float(z[j].max()), j
 
 
 @dataclass
@@ -150,7 +192,21 @@ class Sequencer:
         chunk_s: float = 0.5,
         poll_s: float = 0.02,
         move_timeout_s: float = 120.0,
+        read_timeout_s: float = 5.0,
+        max_attempts: int = 3,
+        imu_max_gap_s: float = 0.1,
+        max_lost_fraction: float = 0.05,
+        accel_max_lost_fraction: float = 0.2,
+        disturbance_window_s: float = 0.1,
+        reconnect_timeout_s: float = 10.0,
+        skip: set[int] | frozenset[int] = frozenset(),
     ):
+        """`read_timeout_s`: host seconds a read may wait beyond the samples' own duration;
+        `max_attempts`: measurements of one position before the run stops; a dwell is measured
+        again when the IMU stream has a gap longer than `imu_max_gap_s` (device time) or loses
+        more than `max_lost_fraction` of its samples, the accelerometer loses more than
+        `accel_max_lost_fraction`, or a disturbance shows (DISTURBANCE_Z); `skip`: plan indices
+        already measured (--resume)."""
         self.turntable = turntable
         self.imu = imu
         self.accel = accelerometer
@@ -163,6 +219,14 @@ class Sequencer:
         self.chunk_s = chunk_s
         self.poll_s = poll_s
         self.move_timeout_s = move_timeout_s
+        self.read_timeout_s = float(read_timeout_s)
+        self.max_attempts = int(max_attempts)
+        self.imu_max_gap_s = float(imu_max_gap_s)
+        self.max_lost_fraction = float(max_lost_fraction)
+        self.accel_max_lost_fraction = float(accel_max_lost_fraction)
+        self.disturbance_window_s = float(disturbance_window_s)
+        self.reconnect_timeout_s = float(reconnect_timeout_s)
+        self.skip = frozenset(int(k) for k in skip)
         self.positions: list[PositionMeans] = []
         self._plan: list[float] = []
 
@@ -212,28 +276,84 @@ class Sequencer:
             plan.append(shifted)
         return plan
 
-    def _move(self, target_deg: float) -> None:
-        self.turntable.move_absolute_deg(target_deg, wait=False)
+    def _poll_ready(self, what: str) -> None:
+        """Poll TS until READY (checking the stop flag); StageError naming state and letter."""
         deadline = time.monotonic() + self.move_timeout_s
         while True:
             self._check_stop()
             st = self.turntable.status()
             if st.is_ready and not st.errors:
                 return
-            if st.is_disabled or st.errors or not st.is_referenced:
+            if st.is_disabled or st.errors or not (st.is_referenced or st.is_homing):
                 self.turntable.wait_ready(timeout_s=0.0)  # raises StageError naming the state and letter
                 return
             if time.monotonic() > deadline:
                 raise DeviceError(
                     "turntable",
                     getattr(self.turntable, "port", None),
-                    f"not READY {self.move_timeout_s:g} s after the move to {target_deg:g}° "
+                    f"not READY {self.move_timeout_s:g} s after {what} "
                     f"(state {st.state_name}) — check the stage's speed and load",
                 )
             time.sleep(self.poll_s)
 
+    def _move_once(self, target_deg: float) -> None:
+        self.turntable.move_absolute_deg(target_deg, wait=False)
+        self._poll_ready(f"the move to {target_deg:g}°")
+
+    def _move(self, target_deg: float) -> None:
+        """Move and wait for READY. A stage error (following error / stall → DISABLE) is logged,
+        the controller re-enabled with MM1 and the move tried once more; a second failure stops
+        the stage and the run (RunFailed, the data so far kept)."""
+        try:
+            self._move_once(target_deg)
+            return
+        except StageError as exc:
+            self._event({"event": "stage_error", "target_deg": target_deg, "attempt": 1, "error": str(exc),
+                         "state": exc.state_name, "letter": exc.letter})
+            log.warning("%s; re-enabling (MM1) and trying the move once more", exc)
+            first = exc
+        try:
+            self.turntable.enable()
+            self._move_once(target_deg)
+        except StageError as exc:
+            self._event({"event": "stage_error", "target_deg": target_deg, "attempt": 2, "error": str(exc),
+                         "state": exc.state_name, "letter": exc.letter})
+            state = self._safe_stop()
+            raise RunFailed(
+                f"turntable on {getattr(self.turntable, 'port', '?')}: the move to {target_deg:g}° failed "
+                f"twice ({first}; then {exc}); stage stopped ({state})",
+                list(self.positions),
+            ) from None
+
+    def _safe_stop(self) -> str:
+        try:
+            return str(self.turntable.stop().state_name)
+        except Exception as exc:  # noqa: BLE001 - the run is stopping anyway; say so
+            return f"unknown ({exc})"
+
+    def _reference(self) -> None:
+        """Home the stage if it is not referenced (stop-flag aware), or a clear StageError when
+        homing is not allowed; wait if it is busy."""
+        st = self.turntable.status()
+        if st.is_referenced and not st.is_homing:
+            self.turntable.ensure_referenced(allow_home=self.allow_home)
+            return
+        if not st.is_homing:
+            if not self.allow_home:
+                raise StageError(
+                    getattr(self.turntable, "port", None),
+                    "the stage is not referenced and homing is disabled ([turntable] allow_home = false) — "
+                    "home it (OR) or set allow_home = true",
+                    state=st.state,
+                    errors=st.errors,
+                )
+            self._event({"event": "home", "state": st.state_name})
+            self.turntable.home(wait=False)
+        self._poll_ready("homing (OR)")
+
     def _read_imu(self, n: int) -> Any:
-        return self.imu.read(n, timeout_s=max(5.0, 2.0 * n / self.imu.rate_hz + 5.0))
+        wait_s = 2.0 * n / self.imu.rate_hz + self.read_timeout_s
+        return self.imu.read(n, timeout_s=max(self.read_timeout_s, wait_s))
 
     def settle(self, expect_motion: bool = True) -> SettleResult:
         """Read gyro-z windows (device time) from the move command on: first until the slew shows
@@ -282,7 +402,9 @@ class Sequencer:
         self.accel.start_node()
 
     def _read_accel(self, n: int) -> Any:
-        return self.accel.read(n, timeout_s=max(5.0, 2.0 * n / self.accel_rate_hz + 5.0))
+        return self.accel.read(
+            n, timeout_s=max(self.read_timeout_s, 2.0 * n / self.accel_rate_hz + self.read_timeout_s)
+        )
 
     def dwell(self, index: int, target_deg: float, settle_s: float = 0.0) -> tuple[list[Any], Any]:
         """Collect dwell_s·rate IMU samples right after settling (in chunks, reporting live
@@ -332,45 +454,166 @@ class Sequencer:
 
     # -- the sequence ------------------------------------------------------------------------
     def run(self) -> list[PositionMeans]:
-        """Measure every position of the plan and return the per-position means."""
+        """Measure every position of the plan (but those in `skip`) and return their means."""
+        try:
+            return self._run()
+        finally:
+            self.log_stats()
+
+    def _run(self) -> list[PositionMeans]:
         self.on_progress(Progress(0, self.run_cfg.positions, "reference"))
-        self.turntable.ensure_referenced(allow_home=self.allow_home)
+        self._check_stop()
+        self._reference()
         self._check_stop()
         self._plan = self.plan_deg()
         n = len(self._plan)
         for i, target in enumerate(self._plan):
-            self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
-            here = float(self.turntable.position_deg())
-            self.accel.stop_node()  # quiet during the move; started again after the settle
-            self.imu.discard_pending()  # what is left is from before the move command
-            self._move(target)
-            self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
-            self._start_accelerometer()  # at READY: its first samples are skipped by the settle time
-            settle = self.settle(expect_motion=abs(target - here) >= MIN_VISIBLE_MOVE_DEG)
-            blocks, accel_block = self.dwell(i, target, settle.settle_s)
-            self._check_stop()
-            angle_deg = float(self.turntable.position_deg())
-            self._flush_logs()
-            means = self._record(i, target, angle_deg, settle, blocks, accel_block)
-            self.on_progress(
-                Progress(
-                    i + 1,
-                    n,
-                    "measured",
-                    target,
-                    dwell_done_s=self.run_cfg.dwell_s,
-                    dwell_s=self.run_cfg.dwell_s,
-                    gyro_mean_dph=means.gyro_dph,
-                    settle_s=settle.settle_s,
-                    means=means,
-                )
-            )
+            if i in self.skip:
+                continue
+            self._measure_position(i, target)
         self.accel.stop_node()
         if self.run_cfg.return_to_start:
             self.on_progress(Progress(n, n, "return", self._plan[0]))
             self._move(self._plan[0])
         self._event({"event": "end", "complete": True, "positions_measured": len(self.positions)})
         return list(self.positions)
+
+    def _measure_position(self, i: int, target: float) -> PositionMeans:
+        """Move, settle and dwell; measure again (up to max_attempts) when the IMU or the
+        accelerometer timed out or vanished, lost too much, or the dwell shows a disturbance."""
+        n = len(self._plan)
+        reasons: list[str] = []
+        for attempt in range(1, self.max_attempts + 1):
+            self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
+            try:
+                here = float(self.turntable.position_deg())
+                self.accel.stop_node()  # quiet during the move; started again after the settle
+                self.imu.discard_pending()  # what is left is from before the move command
+                self._move(target)
+                self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
+                self._start_accelerometer()  # at READY: its first samples are skipped by the settle time
+                settle = self.settle(expect_motion=abs(target - here) >= MIN_VISIBLE_MOVE_DEG)
+                hb0, emcy0 = self._accel_counts()
+                blocks, accel_block = self.dwell(i, target, settle.settle_s)
+                hb1, emcy1 = self._accel_counts()
+            except StageError:
+                raise  # _move already retried once
+            except DeviceError as exc:
+                if exc.device not in ("imu", "accelerometer"):
+                    raise
+                reason = f"{exc.device} read failed: {exc}"
+                if exc.device == "imu" and getattr(self.imu, "failed", None) is not None:
+                    self._reconnect_imu(i, exc)
+                    reason = f"imu link lost and reconnected: {exc}"
+            else:
+                problems = self.dwell_problems(blocks, accel_block)
+                if not problems:
+                    self._check_stop()
+                    angle_deg = float(self.turntable.position_deg())
+                    self._flush_logs()
+                    extra = {"attempt": attempt, "heartbeats": hb1 - hb0, "emcy": emcy1 - emcy0}
+                    means = self._record(i, target, angle_deg, settle, blocks, accel_block, extra)
+                    self.on_progress(
+                        Progress(
+                            i + 1,
+                            n,
+                            "measured",
+                            target,
+                            dwell_done_s=self.run_cfg.dwell_s,
+                            dwell_s=self.run_cfg.dwell_s,
+                            gyro_mean_dph=means.gyro_dph,
+                            settle_s=settle.settle_s,
+                            means=means,
+                        )
+                    )
+                    return means
+                reason = "; ".join(problems)
+            reasons.append(reason)
+            log.warning("position %d attempt %d: %s", i + 1, attempt, reason)
+            self._event({"event": "remeasure", "index": i, "attempt": attempt, "reason": reason})
+            self._check_stop()
+        self._flush_logs()
+        raise RunFailed(
+            f"position {i + 1} of {n} ({target:g}°) failed {self.max_attempts} times — last: {reasons[-1]}",
+            list(self.positions),
+        )
+
+    def _reconnect_imu(self, i: int, exc: DeviceError) -> None:
+        """The IMU port vanished: re-open it with backoff (Imu.reconnect) and log how it went."""
+        t0 = time.monotonic()
+        try:
+            attempts = self.imu.reconnect(timeout_s=self.reconnect_timeout_s)
+        except DeviceError as again:
+            self._event({"event": "imu_reconnect", "index": i, "ok": False, "error": str(again)})
+            raise RunFailed(
+                f"{again} (after: {exc})", list(self.positions)
+            ) from None
+        self._event(
+            {"event": "imu_reconnect", "index": i, "ok": True, "attempts": attempts,
+             "wall_s": round(time.monotonic() - t0, 3), "error": str(exc)}
+        )
+
+    def _accel_counts(self) -> tuple[int, int]:
+        st = self.accel.stats
+        return int(getattr(st, "heartbeats", 0)), int(getattr(st, "emcy", 0))
+
+    def dwell_problems(self, blocks: list[Any], accel_block: Any) -> list[str]:
+        """Why a dwell must be measured again (empty if it is good): a gap or too many lost
+        samples (device sample counters), or a disturbance in the gyro/accelerometer statistics."""
+        out = []
+        rate = float(self.imu.rate_hz)
+        idx = np.concatenate([np.asarray(b.sample_index) for b in blocks])
+        gap = int(np.max(np.diff(idx))) - 1 if idx.size > 1 else 0
+        lost = int(idx[-1] - idx[0] + 1 - idx.size)
+        if gap > self.imu_max_gap_s * rate:
+            out.append(f"imu gap of {gap} samples ({gap / rate:.3f} s device time) inside the dwell")
+        elif lost > self.max_lost_fraction * idx.size:
+            out.append(f"imu lost {lost} of {lost + idx.size} samples")
+        counter = np.asarray(accel_block.counter)
+        a_lost = int(accel_block.lost_samples)
+        if a_lost > self.accel_max_lost_fraction * max(counter.size, 1):
+            out.append(f"accelerometer lost {a_lost} of {a_lost + counter.size} samples (too few)")
+        if out:
+            return out
+        gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0) / DPH
+        imu_acc = np.concatenate([np.asarray(b.accel_g) for b in blocks], axis=0)
+        w = max(10, int(round(self.disturbance_window_s * rate)))
+        z, j = disturbance_z(np.hstack([gyro, imu_acc]), w)
+        wa = max(5, int(round(2.0 * self.disturbance_window_s * self.accel_rate_hz)))
+        za, ja = disturbance_z(np.asarray(accel_block.accel_g), wa, floor=1e-6 / np.sqrt(12.0))
+        if z > DISTURBANCE_Z:
+            out.append(
+                f"disturbance: IMU window {j} ({j * w / rate:.2f} s into the dwell) is {z:.1f} σ "
+                "off the dwell's level"
+            )
+        if za > DISTURBANCE_Z:
+            out.append(
+                f"disturbance: accelerometer window {ja} ({ja * wa / self.accel_rate_hz:.2f} s into "
+                f"its dwell) is {za:.1f} σ off"
+            )
+        return out
+
+    def log_stats(self) -> None:
+        """The drivers' counters for this session (bad CRC, resyncs, lost, EMCY…) to the events log."""
+        try:
+            imu_stats = self.imu.stats
+            acc_stats = self.accel.stats
+            emcy = [
+                {"code": int(e.code), "register": int(e.register), "meaning": str(e.meaning)}
+                for e in self.accel.emergencies
+            ]
+        except Exception as exc:  # noqa: BLE001 - counters are a report, never a reason to fail
+            log.warning("could not read the drivers' counters: %s", exc)
+            return
+        self._event(
+            {
+                "event": "stats",
+                "imu": imu_stats.as_dict() if hasattr(imu_stats, "as_dict") else dict(vars(imu_stats)),
+                "imu_reconnects": int(getattr(self.imu, "reconnects", 0)),
+                "accel": acc_stats.as_dict() if hasattr(acc_stats, "as_dict") else dict(vars(acc_stats)),
+                "emergencies": emcy,
+            }
+        )
 
     def _flush_logs(self) -> None:
         """Push the raw logs to disk after each position (the IMU and stage transports flush every
@@ -395,6 +638,7 @@ class Sequencer:
         settle: SettleResult,
         blocks: list[Any],
         accel_block: Any,
+        extra: dict[str, Any] | None = None,
     ) -> PositionMeans:
         idx = np.concatenate([np.asarray(b.sample_index) for b in blocks])
         gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0)
@@ -423,7 +667,10 @@ class Sequencer:
                     "last_counter": int(counter[-1]),
                     "samples": int(counter.size),
                     "lost": accel_lost,
+                    "heartbeats": int((extra or {}).get("heartbeats", 0)),
+                    "emcy": int((extra or {}).get("emcy", 0)),
                 },
+                "attempt": int((extra or {}).get("attempt", 1)),
                 "gyro_dph": means.gyro_dph,
                 "accel_g": means.accel_g,
             }

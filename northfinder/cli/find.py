@@ -21,8 +21,8 @@ from typing import Any
 
 from northfinder import config as bench
 from northfinder.errors import DeviceError, InputError, RunAborted
-from northfinder.rundir import CONFIG, RESULT, RunDir, compute_result
-from northfinder.sequencer import Interrupted, Progress, Sequencer, StopFlag
+from northfinder.rundir import CONFIG, RESULT, PositionMeans, RunDir, compute_result, faults_summary
+from northfinder.sequencer import Interrupted, Progress, RunFailed, Sequencer, StopFlag
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 
 DEFAULT_TIME_SCALE = 12.0
@@ -47,6 +47,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     src.add_argument(
         "--simulate", action="store_true", help="start firmware-sim as a subprocess and run on it"
+    )
+    src.add_argument(
+        "--resume",
+        metavar="RUN_DIR",
+        help="finish an interrupted run: re-open its devices from its saved config (a simulated run "
+        "starts firmware-sim again), measure the missing positions, write the complete result",
     )
     p.add_argument("--positions", type=int, metavar="N", help="number of table positions (≥ 3)")
     p.add_argument(
@@ -332,12 +338,49 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
             str(p["accel_lost_samples"]),
         )
     console.print(pos)
+    _print_faults(result.get("faults"), console)
     if run_dir is not None:
         console.print(f"run directory: {run_dir}")
 
 
+def _print_faults(faults: dict[str, Any] | None, console: Any) -> None:
+    """What went wrong and what was done: lost samples, re-measured positions, stage errors, EMCY."""
+    if not faults:
+        return
+    from rich.markup import escape
+
+    imu, acc = faults["imu"], faults["accel"]
+    lines = [
+        f"IMU: {imu['bad_crc']} bad CRC, {imu['resyncs']} resyncs, {imu['sequence_gaps']} gaps, "
+        f"{imu['lost_samples']} samples lost in the stream ({imu['lost_in_dwells']} inside kept dwells), "
+        f"{imu['reconnects']} reconnects",
+        f"accelerometer: {acc['lost_samples']} samples lost ({acc['lost_in_dwells']} inside kept dwells), "
+        f"{acc['emcy']} EMCY, heartbeats {acc['heartbeats']}",
+    ]
+    for m in acc["emergencies"]:
+        lines.append(f"  EMCY 0x{m['code']:04X} register 0x{m['register']:02X}: {m['meaning']}")
+    if acc["heartbeat_lost_positions"]:
+        pos = ", ".join(str(k + 1) for k in acc["heartbeat_lost_positions"])
+        lines.append(f"  no heartbeat from the node during position(s) {pos}: node watch lost")
+    for r in faults["remeasured"]:
+        lines.append(
+            f"position {r['index'] + 1} measured again (attempt {r['attempt']} rejected): {r['reason']}"
+        )
+    for e in faults["stage_errors"]:
+        lines.append(
+            f"stage error on the move to {e['target_deg']:g}° (attempt {e['attempt']}): {e['error']}"
+        )
+    if faults.get("sessions", 1) > 1:
+        lines.append(f"measured in {faults['sessions']} sessions (resumed)")
+    console.print("[bold]faults[/]")
+    for line in lines:
+        console.print(escape(line))
+
+
 def run(args: argparse.Namespace) -> int:
     _check_flags(args)
+    if args.resume:
+        return _resume(args)
     settings: SimSettings | None = None
     rundir = RunDir(args.out or default_out())
     if args.simulate:
@@ -429,11 +472,17 @@ def measure(
     report: bool = True,
     progress: bool = True,
     can_kwargs: dict[str, Any] | None = None,
+    previous: list[PositionMeans] | None = None,
+    skip: set[int] | None = None,
+    seq_kwargs: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """One north find on the bench `cfg` describes: open the devices, run the sequence, save the
     run directory, return the result. A signal stops it: RunAborted (exit 130, 143 for SIGTERM)
-    after the stage is stopped and what was measured is saved."""
+    after the stage is stopped and what was measured is saved; a fault the run cannot get past
+    (RunFailed) also saves first. `previous`/`skip`: a resumed run's positions already measured
+    (and their plan indices); `rundir.session` > 1 then. `seq_kwargs` go to the Sequencer."""
     truth = settings.truth() if settings else None
+    previous = list(previous or [])
     sim_info = None
     if settings is not None:
         sim_info = {
@@ -443,7 +492,8 @@ def measure(
             "time_scale": settings.time_scale,
             "faults": list(settings.faults),
         }
-    rundir.write_json(CONFIG, {"bench": cfg.to_dict(), "simulate": sim_info, "argv": sys.argv})
+    if rundir.session == 1:
+        rundir.write_json(CONFIG, {"bench": cfg.to_dict(), "simulate": sim_info, "argv": sys.argv})
     stop = StopFlag()
     with stop.installed(), open_bench(cfg, rundir, can_kwargs) as (tt, imu, acc):
         imu.configure()  # read the IMU's rate and gyro format back: the decoder must know them
@@ -453,6 +503,8 @@ def measure(
         rundir.log_event(
             {
                 "event": "start",
+                "session": rundir.session,
+                "simulate": sim_info,
                 "utc": datetime.now(UTC).isoformat(),
                 "latitude_deg": cfg.site.latitude_deg,
                 "height_m": cfg.site.height_m,
@@ -485,12 +537,17 @@ def measure(
             on_progress=view,
             stop_flag=stop,
             accel_rate_hz=cfg.accelerometer.rate_hz,
+            skip=skip or set(),
+            **(seq_kwargs or {}),
         )
         try:
             with view:
-                positions = seq.run()
+                positions = previous + seq.run()
         except Interrupted as intr:
+            intr.positions = previous + intr.positions
             _aborted(intr, cfg, rundir, truth, json_path, report)
+        except RunFailed as fail:
+            _failed(fail, previous + fail.positions, cfg, rundir, truth, json_path, report)
     result = compute_result(
         positions,
         cfg.site.latitude_deg,
@@ -498,6 +555,7 @@ def measure(
         height_m=cfg.site.height_m,
         truth=truth,
         positions_planned=cfg.run.positions,
+        faults=faults_summary(rundir.events()),
     )
     _save(result, rundir, json_path, report)
     return result
@@ -513,6 +571,110 @@ def _save(result: dict[str, Any], rundir: RunDir, json_path: str | None, report:
         write_report(result, rundir.report_path)
 
 
+def _save_partial(
+    positions: list[PositionMeans],
+    cfg: bench.BenchConfig,
+    rundir: RunDir,
+    truth: dict[str, float] | None,
+    json_path: str | None,
+    report: bool,
+) -> None:
+    """End event (incomplete) and, with 3 positions or more, the partial result."""
+    k = len(positions)
+    rundir.log_event({"event": "end", "complete": False, "positions_measured": k})
+    if k >= 3:
+        result = compute_result(
+            positions,
+            cfg.site.latitude_deg,
+            cfg.estimator.method,
+            height_m=cfg.site.height_m,
+            truth=truth,
+            complete=False,
+            positions_planned=cfg.run.positions,
+            faults=faults_summary(rundir.events()),
+        )
+        _save(result, rundir, json_path, report)
+
+
+def _failed(
+    fail: RunFailed,
+    positions: list[PositionMeans],
+    cfg: bench.BenchConfig,
+    rundir: RunDir,
+    truth: dict[str, float] | None,
+    json_path: str | None,
+    report: bool,
+) -> None:
+    """A fault the run could not get past: save what was measured, then one line saying so."""
+    _save_partial(positions, cfg, rundir, truth, json_path, report)
+    raise RunFailed(
+        f"{fail}; {len(positions)} of {cfg.run.positions} positions measured and saved in {rundir.path} "
+        f"(northfinder replay {rundir.path}; finish it with northfinder find --resume {rundir.path})",
+        positions,
+    )
+
+
+def _resume(args: argparse.Namespace) -> int:
+    """`find --resume RUN_DIR`: a new session in the same run directory (its own raw logs), on the
+    devices of the saved config; measures the plan indices that have no position event yet."""
+    from northfinder.rundir import replay
+
+    rundir = RunDir(args.resume, create=False)
+    saved = rundir.read_json(CONFIG)
+    events = rundir.events()
+    if any(e.get("event") == "end" and e.get("complete") for e in events):
+        raise InputError(f"--resume {rundir.path}: the run is already complete (northfinder replay it)")
+    starts = [e for e in events if e.get("event") == "start"]
+    if not starts:
+        raise InputError(f"--resume {rundir.path}: the run never started (no start event); run it anew")
+    done = {int(e["index"]) for e in events if e.get("event") == "position"}
+    previous = replay(rundir.path).positions
+    rundir = RunDir(rundir.path, create=False, session=len(starts) + 1)
+    cfg = bench.from_dict(saved["bench"], source=str(rundir.file(CONFIG)))
+    sim = saved.get("simulate")
+    settings = None
+    sim_toml = rundir.file("firmware_sim.toml")
+    if sim:
+        settings = SimSettings(
+            heading_deg=sim["heading_deg"],
+            pitch_deg=sim["pitch_deg"],
+            roll_deg=sim["roll_deg"],
+            latitude_deg=sim["latitude_deg"],
+            grade=sim["grade"],
+            # a new power-on of the simulated bench: fresh sensor noise, the same truth
+            seed=int(sim["seed"]) + rundir.session - 1,
+            time_scale=float(args.time_scale),
+            faults=tuple(args.fault) if args.fault else tuple(sim.get("faults", ())),
+            config=str(sim_toml) if sim_toml.exists() else None,
+        )
+    else:
+        bench.require_ports(cfg)
+    t_wall = time.monotonic()
+    with contextlib.ExitStack() as stack:
+        if settings is not None:
+            endpoints = stack.enter_context(SimulatorProcess(settings))
+            cfg = bench_config(endpoints, settings.latitude_deg, cfg)
+        result = measure(
+            cfg,
+            rundir,
+            settings=settings,
+            json_path=args.json,
+            report=False,
+            can_kwargs={"sleep_after_open": 0.05}
+            if settings and cfg.accelerometer.interface == "slcan"
+            else None,
+            previous=previous,
+            skip=done,
+        )
+    if not args.no_report:
+        from northfinder.report import write_report
+
+        write_report(result, rundir.report_path)
+    print_summary(result, run_dir=rundir.path)
+    print(f"wall time {time.monotonic() - t_wall:.1f} s (resumed session {rundir.session})", file=sys.stderr)
+    return 0
+
+
 def _aborted(
     intr: Interrupted,
     cfg: bench.BenchConfig,
@@ -522,21 +684,11 @@ def _aborted(
     report: bool,
 ) -> None:
     k, n = len(intr.positions), cfg.run.positions
-    rundir.log_event({"event": "end", "complete": False, "positions_measured": k})
-    if k >= 3:
-        result = compute_result(
-            intr.positions,
-            cfg.site.latitude_deg,
-            cfg.estimator.method,
-            height_m=cfg.site.height_m,
-            truth=truth,
-            complete=False,
-            positions_planned=n,
-        )
-        _save(result, rundir, json_path, report)
+    _save_partial(intr.positions, cfg, rundir, truth, json_path, report)
     err = RunAborted(
         f"run stopped by {signal.Signals(intr.signum).name} after {k} of {n} positions; stage "
-        f"{intr.stage_state}; the data is saved in {rundir.path} (northfinder replay {rundir.path})"
+        f"{intr.stage_state}; the data is saved in {rundir.path} (northfinder replay {rundir.path}; "
+        f"finish it with northfinder find --resume {rundir.path})"
     )
     if intr.signum == signal.SIGTERM:
         err.exit_code = 143

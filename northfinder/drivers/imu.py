@@ -23,6 +23,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -121,9 +122,15 @@ class Imu:
             kvh.gyro_scale_to_rad_s(self.rate_hz, self.rot_format, self.rot_units)
         except ValueError as exc:
             raise ConfigError(f"imu: {exc}") from None
-        self._t = transport if transport is not None else SerialTransport(
-            port, device=DEVICE, baudrate=baudrate, timeout_s=0.05, raw_log=raw_log
-        )
+        self._baudrate = int(baudrate)
+        # The driver owns the raw log (not the transport), so a reconnect appends to the same one.
+        self._own_raw = isinstance(raw_log, str | Path)
+        if isinstance(raw_log, str | Path):
+            Path(raw_log).parent.mkdir(parents=True, exist_ok=True)
+            raw_log = open(raw_log, "wb")  # noqa: SIM115 - closed in close()
+        self._raw_log = raw_log
+        self.reconnects = 0
+        self._t = transport if transport is not None else self._open_transport()
         self._decoder = KvhDecoder()
         self._cond = threading.Condition()
         self._pending: list[tuple[np.ndarray, np.ndarray]] = []
@@ -142,7 +149,70 @@ class Imu:
                 self.close()
                 raise
 
+    def _open_transport(self) -> SerialTransport:
+        return SerialTransport(self.port, device=DEVICE, baudrate=self._baudrate, timeout_s=0.05,
+                               raw_log=self._raw_log)
+
     # -- background reader -------------------------------------------------------------------
+    @property
+    def failed(self) -> BaseException | None:
+        """The error that stopped the reader (port gone, I/O error), or None while it runs."""
+        with self._cond:
+            return self._error
+
+    def reconnect(self, timeout_s: float = 10.0, first_wait_s: float = 0.05, max_wait_s: float = 1.0) -> int:
+        """Re-open the same port after it vanished (USB unplug, a symlink re-pointed), retrying with
+        exponential backoff until a format-A frame arrives or `timeout_s` (host) passes; returns
+        the number of attempts. The decoder and the raw log carry on, so the sample index stays
+        monotonic and replay of the raw log decodes exactly what was decoded live.
+        Raises the last DeviceError (naming the port) when the device does not come back."""
+        self._stop.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+        with contextlib.suppress(Exception):
+            self._t.close()
+        deadline = time.monotonic() + timeout_s
+        backoff_s = first_wait_s
+        attempts = 0
+        last: BaseException | None = None
+        while True:
+            attempts += 1
+            try:
+                self._t = self._open_transport()
+            except DeviceError as exc:
+                last = exc
+            else:
+                with self._cond:
+                    self._error = None
+                    self._pending, self._pending_n = [], 0
+                    frames0 = self._decoder.stats.frames
+                self._stop = threading.Event()
+                self._thread = threading.Thread(target=self._reader, name=f"imu-reader {self.port}",
+                                                daemon=True)
+                self._thread.start()
+                def arrived(frames0: int = frames0) -> bool:
+                    return self._decoder.stats.frames > frames0 or self._error is not None
+
+                with self._cond:
+                    wait_s = max(0.0, min(self.timeout_s, deadline - time.monotonic()))
+                    ok = self._cond.wait_for(arrived, wait_s)
+                    ok = ok and self._error is None
+                    last = self._error
+                if ok:
+                    self.reconnects += 1
+                    return attempts
+                self._stop.set()
+                self._thread.join(timeout=2.0)
+                with contextlib.suppress(Exception):
+                    self._t.close()
+            if time.monotonic() + backoff_s > deadline:
+                if isinstance(last, DeviceError):
+                    raise last
+                raise DeviceError(DEVICE, self.port, f"did not come back within {timeout_s:g} s after the "
+                                  f"link was lost ({last}) — check the cable")
+            time.sleep(backoff_s)
+            backoff_s = min(2.0 * backoff_s, max_wait_s)
+
     def _reader(self) -> None:
         while not self._stop.is_set():
             try:
@@ -348,6 +418,8 @@ class Imu:
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(timeout=2.0)
         self._t.close()
+        if self._own_raw and self._raw_log is not None and not self._raw_log.closed:
+            self._raw_log.close()
 
     def __enter__(self) -> Imu:
         return self

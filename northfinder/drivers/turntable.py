@@ -190,10 +190,20 @@ class Turntable:
         hi = self._parse(lambda r: smc100.parse_position(r, "SR"), self._ask("SR", query=True))
         return lo, hi
 
-    def home(self, timeout_s: float = 120.0) -> StageStatus:
-        """OR (search the reference, α = 0), then wait for READY."""
+    def home(self, timeout_s: float = 120.0, wait: bool = True) -> StageStatus | None:
+        """OR (search the reference, α = 0); with `wait`, block until READY."""
         self._checked("OR", what="home (OR) refused")
-        return self.wait_ready(timeout_s)
+        return self.wait_ready(timeout_s) if wait else None
+
+    def enable(self) -> StageStatus:
+        """MM1: leave DISABLE (after a following error) for READY, clearing the error bits; the
+        reference is kept. StageError if the controller refuses or is still not READY."""
+        self._checked("MM", 1, what="enable (MM1) refused")
+        st = self.status()
+        if not st.is_ready or st.errors:
+            raise StageError(self.port, "still not READY after MM1 — check the stage (jammed, overloaded?)",
+                             state=st.state, errors=st.errors)
+        return st
 
     def ensure_referenced(self, allow_home: bool = True) -> StageStatus:
         """Home if the stage is NOT REFERENCED (StageError if that is not allowed); wait if busy."""
