@@ -352,6 +352,7 @@ class Simulator:
         self.last_t = 0.0
         """Device time of the loop's last tick."""
         self._clock_running = False
+        self._warm = threading.Event()
         self._endpoints: dict[str, Any] | None = None
 
     # -- building ---------------------------------------------------------------------------
@@ -472,6 +473,12 @@ class Simulator:
         """Open every port, start the loop thread at device time 0; return the endpoints."""
         if self._thread is not None:
             raise RuntimeError("simulator already started")
+        # The sensor models' filters need scipy.signal, which takes 0.5-3 s to import on a loaded
+        # machine: load it in a helper thread from now on, while the ports are built, and hold
+        # device time at 0 until it is there, so that the first samples are not a burst of
+        # catch-up. The loop runs meanwhile: the ports answer at once (a stage asked `1TS` says
+        # NOT REFERENCED).
+        threading.Thread(target=self._warm_up, name="firmware_sim-warm-up", daemon=True).start()
         try:
             self._build()
         except BaseException:
@@ -499,25 +506,12 @@ class Simulator:
 
     def _run(self) -> None:
         self._can_powered = False
-        # The sensor models' filters need scipy.signal, which takes 0.5-3 s to import on a loaded
-        # machine: load it in a helper thread, after the endpoints are out, and hold device time
-        # at 0 until it is there, so that the first samples are not a burst of catch-up. The loop
-        # runs meanwhile: the ports answer at once (a stage asked `1TS` says NOT REFERENCED).
-        warm = threading.Event()
-
-        def warm_up() -> None:
-            try:
-                import scipy.signal  # noqa: F401
-            finally:
-                warm.set()
-
-        threading.Thread(target=warm_up, name="firmware_sim-warm-up", daemon=True).start()
         try:
             while not self._stop.is_set():
                 by_fd = {fd: d for d in self.devices if (fd := d.fileno()) is not None}
                 wfds = [p.fileno() for p in self._ports() if p.pending and not p.closed and p.connected]
                 readable, _, _ = select.select(list(by_fd), wfds, [], TICK_WALL_S)
-                if not self._clock_running and warm.is_set():
+                if not self._clock_running and self._warm.is_set():
                     self.clock.start()
                     self._clock_running = True
                 t = self.clock.now() if self._clock_running else 0.0
@@ -536,6 +530,12 @@ class Simulator:
             log.exception("simulator loop failed")
             self.error = exc
             self.failed.set()
+
+    def _warm_up(self) -> None:
+        try:
+            import scipy.signal  # noqa: F401
+        finally:
+            self._warm.set()
 
     def now(self) -> float:
         """Device seconds since start (0 until the loop has started device time)."""
