@@ -9,8 +9,9 @@ the world's integrated truth through the sensor error models.
 Delivery to a client (what the truth log's time alignment rests on): sample k (k = 1, 2, … since
 power-on, sequence number (k − 1) mod 128) is produced whether or not anyone listens, and only a
 connected client receives it. When the IMU sees a new client it waits `connect_grace_s` of device
-time (the simulator passes 50 ms of wall time: pyserial flushes its input right after opening),
-drops anything stale, and starts on a frame boundary; `on_event("imu_connect", t, {"k0": …})`
+time (the simulator passes 50 ms of wall time: pyserial flushes its input right after opening)
+and starts it on a frame boundary (what a client left unread was dropped when it left);
+`on_event("imu_connect", t, {"k0": …})`
 names the first sample that client gets. A client already there at power-on gets every sample
 from k = 1 with no grace. Rate changes and configuration mode, which move the k ↔ device-time
 map, are reported as `imu_grid` events (docs/simulator.md).
@@ -381,8 +382,7 @@ class KvhImu(Device):
             i0 = int(late[0])
             skip = int(sizes[:i0].sum())
             self.port.bytes_unheard += skip
-            data = data[skip:]
-            self.port.discard()
+            data = data[skip:]  # (nothing stale is queued: the last disconnect discarded it)
             self._link = "up"
             self._event("imu_connect", k0=int(k_abs[i0]), sequence0=int(seq[i0]),
                         t0_device_s=float(t_end[i0]), rate_hz=self.rate_hz, port=self.port.path)
