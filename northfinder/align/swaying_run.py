@@ -87,16 +87,20 @@ def parse_sway(text: str) -> dict[str, list[list[float]]]:
         axis, sep, value = item.strip().partition("=")
         axis = axis.strip().lower()
         if not sep or axis not in SWAY_AXES:
-            raise InputError(f"--sway {item.strip()!r}: write AXIS=AMP:PERIOD_S with AXIS one of "
-                             f"{', '.join(SWAY_AXES)}, e.g. --sway \"{REFERENCE_SWAY}\"")
+            raise InputError(
+                f"--sway {item.strip()!r}: write AXIS=AMP:PERIOD_S with AXIS one of "
+                f'{", ".join(SWAY_AXES)}, e.g. --sway "{REFERENCE_SWAY}"'
+            )
         try:
             numbers = [float(v) for v in value.split(":")]
         except ValueError:
             numbers = []
         if not 2 <= len(numbers) <= 3 or not all(math.isfinite(v) for v in numbers) or numbers[1] <= 0:
             unit = "m" if axis in ("surge", "sway", "heave") else "deg"
-            raise InputError(f"--sway {item.strip()}: give {axis}=AMP:PERIOD_S as numbers (AMP in {unit}, "
-                             f"PERIOD_S > 0), e.g. --sway \"{REFERENCE_SWAY}\"")
+            raise InputError(
+                f"--sway {item.strip()}: give {axis}=AMP:PERIOD_S as numbers (AMP in {unit}, "
+                f'PERIOD_S > 0), e.g. --sway "{REFERENCE_SWAY}"'
+            )
         out.setdefault(axis, []).append(numbers)
     return out
 
@@ -105,8 +109,11 @@ def format_sway(sway: dict[str, list[list[float]]]) -> str:
     """The inverse of :func:`parse_sway` (what is passed on to firmware-sim)."""
     if not sway:
         return "none"
-    return ",".join(f"{axis}=" + ":".join(repr(float(v)) for v in term)
-                    for axis in SWAY_AXES for term in sway.get(axis, []))
+    return ",".join(
+        f"{axis}=" + ":".join(repr(float(v)) for v in term)
+        for axis in SWAY_AXES
+        for term in sway.get(axis, [])
+    )
 
 
 def longest_period_s(sway: dict[str, list[list[float]]], default_s: float = DEFAULT_SWAY_PERIOD_S) -> float:
@@ -135,11 +142,27 @@ class ShipSim:
     """A firmware-sim TOML for the keys without a flag (e.g. imu_variant); the flags win."""
 
     def argv(self) -> list[str]:
-        out = [sys.executable, "-m", "firmware_sim", "--scenario", "ship", "--sway", self.sway,
-               "--lever-arm", ",".join(repr(float(v)) for v in self.lever_arm_m),
-               "--heading", repr(float(self.heading_deg)), "--latitude", repr(float(self.latitude_deg)),
-               "--grade", self.grade, "--seed", str(int(self.seed)),
-               "--time-scale", repr(float(self.time_scale))]
+        out = [
+            sys.executable,
+            "-m",
+            "firmware_sim",
+            "--scenario",
+            "ship",
+            "--sway",
+            self.sway,
+            "--lever-arm",
+            ",".join(repr(float(v)) for v in self.lever_arm_m),
+            "--heading",
+            repr(float(self.heading_deg)),
+            "--latitude",
+            repr(float(self.latitude_deg)),
+            "--grade",
+            self.grade,
+            "--seed",
+            str(int(self.seed)),
+            "--time-scale",
+            repr(float(self.time_scale)),
+        ]
         if self.truth_log:
             out += ["--truth-log", str(self.truth_log)]
         if self.config:
@@ -149,9 +172,17 @@ class ShipSim:
         return out
 
     def to_dict(self) -> dict[str, Any]:
-        return {"scenario": "ship", "sway": self.sway, "lever_arm_m": list(self.lever_arm_m),
-                "heading_deg": self.heading_deg, "latitude_deg": self.latitude_deg, "grade": self.grade,
-                "seed": self.seed, "time_scale": self.time_scale, "faults": list(self.faults)}
+        return {
+            "scenario": "ship",
+            "sway": self.sway,
+            "lever_arm_m": list(self.lever_arm_m),
+            "heading_deg": self.heading_deg,
+            "latitude_deg": self.latitude_deg,
+            "grade": self.grade,
+            "seed": self.seed,
+            "time_scale": self.time_scale,
+            "faults": list(self.faults),
+        }
 
 
 class ShipSimProcess(SimulatorProcess):
@@ -163,8 +194,14 @@ class ShipSimProcess(SimulatorProcess):
         root = str(Path(__file__).resolve().parents[2])
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
         try:
-            self.proc = subprocess.Popen(self.settings.argv(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                         stdin=subprocess.DEVNULL, env=env, start_new_session=True)
+            self.proc = subprocess.Popen(
+                self.settings.argv(),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                stdin=subprocess.DEVNULL,
+                env=env,
+                start_new_session=True,
+            )
         except OSError as exc:
             raise DeviceError("firmware-sim", None, f"cannot start it ({exc.strerror})") from None
         line = self._read_line(self.startup_timeout_s)
@@ -174,8 +211,9 @@ class ShipSimProcess(SimulatorProcess):
                 raise ValueError
         except ValueError:
             self.stop()
-            raise DeviceError("firmware-sim", None,
-                              f"printed {line[:120]!r} instead of the ship scenario's endpoints") from None
+            raise DeviceError(
+                "firmware-sim", None, f"printed {line[:120]!r} instead of the ship scenario's endpoints"
+            ) from None
         self.endpoints = endpoints
         return endpoints
 
@@ -205,10 +243,17 @@ def load_bench(path: str | Path, latitude_deg: float | None = None) -> ImuSettin
         raise ConfigError(f"{cfg.source}: [imu] port is missing; give the IMU's serial port")
     lat = float(latitude_deg) if latitude_deg is not None else cfg.site.latitude_deg
     if math.isnan(lat):
-        raise ConfigError(f"{cfg.source}: [site] latitude_deg is missing; give the site's latitude "
-                          "(or --latitude DEG)")
-    return ImuSettings(port=cfg.imu.port, rate_hz=float(cfg.imu.rate_hz), baudrate=int(cfg.imu.baudrate),
-                       latitude_deg=lat, height_m=float(cfg.site.height_m), source=cfg.source)
+        raise ConfigError(
+            f"{cfg.source}: [site] latitude_deg is missing; give the site's latitude (or --latitude DEG)"
+        )
+    return ImuSettings(
+        port=cfg.imu.port,
+        rate_hz=float(cfg.imu.rate_hz),
+        baudrate=int(cfg.imu.baudrate),
+        latitude_deg=lat,
+        height_m=float(cfg.site.height_m),
+        source=cfg.source,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -235,8 +280,15 @@ def _select(block: Any, first_index: int, last_index: int) -> Any:
     sel = (block.sample_index >= first_index) & (block.sample_index <= last_index)
     idx = block.sample_index[sel]
     lost = int(idx[-1] - idx[0] + 1 - len(idx)) if len(idx) else 0
-    return ImuBlock(idx, block.gyro_rad_s[sel], block.accel_g[sel], block.status[sel],
-                    block.temperature_c[sel], lost, block.rate_hz)
+    return ImuBlock(
+        idx,
+        block.gyro_rad_s[sel],
+        block.accel_g[sel],
+        block.status[sel],
+        block.temperature_c[sel],
+        lost,
+        block.rate_hz,
+    )
 
 
 def check_stream(block: Any, port: str) -> None:
@@ -244,12 +296,18 @@ def check_stream(block: Any, port: str) -> None:
     docs/PROTOCOLS.md §2, or all-zero fields) and gyros at the end of their range."""
     status = np.asarray(block.status, dtype=np.int64)
     if len(status) and (np.mean(((status >> 4) & 0b111) == 0b111) < 0.5 or not np.any(block.accel_g)):
-        raise DeviceError("imu", port, "reports no valid accelerometers (status bits 4–6 clear): the swaying "
-                          "alignment needs a 3-axis gyro + accelerometer IMU (KVH 1750/1760/1775)")
+        raise DeviceError(
+            "imu",
+            port,
+            "reports no valid accelerometers (status bits 4–6 clear): the swaying "
+            "alignment needs a 3-axis gyro + accelerometer IMU (KVH 1750/1760/1775)",
+        )
     peak = float(np.max(np.abs(block.gyro_rad_s))) / DEG if len(status) else 0.0
     if peak >= GYRO_SATURATION_FRACTION * KVH_GYRO_RANGE_DPS:
-        raise InputError(f"gyro reached {peak:.1f} °/s, the ±{KVH_GYRO_RANGE_DPS:g} °/s range of the IMU on "
-                         f"{port}: the sway saturates the gyro — align in calmer sea or with a wider-range IMU")
+        raise InputError(
+            f"gyro reached {peak:.1f} °/s, the ±{KVH_GYRO_RANGE_DPS:g} °/s range of the IMU on "
+            f"{port}: the sway saturates the gyro — align in calmer sea or with a wider-range IMU"
+        )
 
 
 class _View:
@@ -259,13 +317,21 @@ class _View:
         from rich.console import Console
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-        self.progress = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
-                                 TimeElapsedColumn(), console=Console(stderr=True), disable=not enabled)
+        self.progress = Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TextColumn("{task.fields[info]}"),
+            TimeElapsedColumn(),
+            console=Console(stderr=True),
+            disable=not enabled,
+        )
         self.task = self.progress.add_task("device time", total=duration_s, info="waiting for data")
 
     def update(self, done_s: float, total_s: float, stats: Any) -> None:
-        info = (f"{done_s:6.1f}/{total_s:g} s  lost {stats.lost_samples}  bad CRC {stats.bad_crc}  "
-                f"resyncs {stats.resyncs}")
+        info = (
+            f"{done_s:6.1f}/{total_s:g} s  lost {stats.lost_samples}  bad CRC {stats.bad_crc}  "
+            f"resyncs {stats.resyncs}"
+        )
         self.progress.update(self.task, completed=done_s, info=info)
 
     def __enter__(self) -> _View:
@@ -306,10 +372,19 @@ def acquire(
         with imu:
             if configure_imu:
                 imu.configure()  # read rate and gyro format back: the decoder must know them
-            start = {"event": "start", "kind": KIND, "utc": now_utc(), "duration_s": duration_s,
-                     "imu": {"port": imu_port, "rate_hz": imu.rate_hz, "rot_format": imu.rot_format,
-                             "rot_units": imu.rot_units},
-                     **settings}
+            start = {
+                "event": "start",
+                "kind": KIND,
+                "utc": now_utc(),
+                "duration_s": duration_s,
+                "imu": {
+                    "port": imu_port,
+                    "rate_hz": imu.rate_hz,
+                    "rot_format": imu.rot_format,
+                    "rot_units": imu.rot_units,
+                },
+                **settings,
+            }
             rd.log_event(start)
             rate = imu.rate_hz
             n_total = int(round(duration_s * rate))
@@ -335,13 +410,28 @@ def acquire(
     if not blocks:
         rd.log_event({"event": "end", "complete": False, "imu": {"samples": 0}})
         raise _abort_or(stop, rd, "no IMU samples were read")
-    block = ImuBlock(np.concatenate([b.sample_index for b in blocks]), np.concatenate([b.gyro_rad_s for b in blocks]),
-                     np.concatenate([b.accel_g for b in blocks]), np.concatenate([b.status for b in blocks]),
-                     np.concatenate([b.temperature_c for b in blocks]), 0, rate)
+    block = ImuBlock(
+        np.concatenate([b.sample_index for b in blocks]),
+        np.concatenate([b.gyro_rad_s for b in blocks]),
+        np.concatenate([b.accel_g for b in blocks]),
+        np.concatenate([b.status for b in blocks]),
+        np.concatenate([b.temperature_c for b in blocks]),
+        0,
+        rate,
+    )
     lost = int(block.sample_index[-1] - block.sample_index[0] + 1 - len(block))
-    end = {"event": "end", "complete": complete, "utc": now_utc(),
-           "imu": {"first_index": int(block.sample_index[0]), "last_index": int(block.sample_index[-1]),
-                   "samples": len(block), "lost_samples": lost, "stats": stats}}
+    end = {
+        "event": "end",
+        "complete": complete,
+        "utc": now_utc(),
+        "imu": {
+            "first_index": int(block.sample_index[0]),
+            "last_index": int(block.sample_index[-1]),
+            "samples": len(block),
+            "lost_samples": lost,
+            "stats": stats,
+        },
+    }
     rd.log_event(end)
     return Window(block, start, end, stop)
 
@@ -349,8 +439,10 @@ def acquire(
 def _abort_or(stop: StopFlag, rd: RunDir, what: str) -> Exception:
     if not stop:
         return InputError(what)
-    err = RunAborted(f"run stopped by {signal.Signals(stop.signum).name}; {what}; the data is saved in "
-                     f"{rd.path} (northfinder replay {rd.path})")
+    err = RunAborted(
+        f"run stopped by {signal.Signals(stop.signum).name}; {what}; the data is saved in "
+        f"{rd.path} (northfinder replay {rd.path})"
+    )
     if stop.signum == signal.SIGTERM:
         err.exit_code = 143
     return err
@@ -402,8 +494,9 @@ def read_truth_log(path: Path) -> ShipTruth:
     if not rows:
         raise InputError(f"{path}: the truth log has no truth rows")
     arr = np.array(sorted(rows), dtype=float)
-    return ShipTruth(arr[:, 0], np.rad2deg(np.unwrap(np.deg2rad(arr[:, 1]))), arr[:, 2], arr[:, 3],
-                     connect, grid, header)
+    return ShipTruth(
+        arr[:, 0], np.rad2deg(np.unwrap(np.deg2rad(arr[:, 1]))), arr[:, 2], arr[:, 3], connect, grid, header
+    )
 
 
 def first_sequence(raw: bytes) -> int:
@@ -423,20 +516,28 @@ def truth_at_end(rd: RunDir, start: dict[str, Any], first_index: int, last_index
     rate = float(start["imu"]["rate_hz"])
     c = truth.connect
     if c is None:
-        raise InputError(f"{rd.path}: the truth log has no imu_connect event; cannot place the samples in time")
+        raise InputError(
+            f"{rd.path}: the truth log has no imu_connect event; cannot place the samples in time"
+        )
     if truth.grid_events:
-        raise InputError(f"{rd.path}: the simulated IMU's sample grid moved after this client connected "
-                         "(imu_grid event in the truth log); its samples no longer map to device time")
+        raise InputError(
+            f"{rd.path}: the simulated IMU's sample grid moved after this client connected "
+            "(imu_grid event in the truth log); its samples no longer map to device time"
+        )
     if float(c["rate_hz"]) != rate:
-        raise InputError(f"{rd.path}: the truth log's IMU rate {c['rate_hz']:g} Hz is not the run's {rate:g} Hz")
+        raise InputError(
+            f"{rd.path}: the truth log's IMU rate {c['rate_hz']:g} Hz is not the run's {rate:g} Hz"
+        )
     s0 = first_sequence(rd.file(IMU_RAW).read_bytes())
     k_first = int(c["k0"]) + (s0 - int(c["sequence0"])) % 128
     t_of_end = lambda u: float(c["t0_device_s"]) + (k_first - int(c["k0"]) + u) / rate  # noqa: E731
     t_end = t_of_end(last_index)
     t_start = t_of_end(first_index - 1)
     if t_end > truth.t_s[-1] + 1.0 / float(truth.header.get("truth_rate_hz", 50.0)):
-        raise InputError(f"{rd.path}: the truth log ends at {truth.t_s[-1]:.3f} s, before the window's end "
-                         f"at {t_end:.3f} s of device time")
+        raise InputError(
+            f"{rd.path}: the truth log ends at {truth.t_s[-1]:.3f} s, before the window's end "
+            f"at {t_end:.3f} s of device time"
+        )
     return {
         "heading_deg": truth.at(t_end, "heading_deg") % 360.0,
         "pitch_deg": truth.at(t_end, "pitch_deg"),
@@ -444,8 +545,13 @@ def truth_at_end(rd: RunDir, start: dict[str, Any], first_index: int, last_index
         "heading_at_start_deg": truth.at(t_start, "heading_deg") % 360.0,
         "t_device_s": t_end,
         "t_start_device_s": t_start,
-        "time_alignment": {"method": "truth-log", "k0": int(c["k0"]), "sequence0": int(c["sequence0"]),
-                           "first_sequence": s0, "k_first": k_first},
+        "time_alignment": {
+            "method": "truth-log",
+            "k0": int(c["k0"]),
+            "sequence0": int(c["sequence0"]),
+            "first_sequence": s0,
+            "k_first": k_first,
+        },
         "sway": truth.header.get("sway"),
         "lever_arm_m": (truth.header.get("imu") or {}).get("lever_arm_b_m"),
     }
@@ -454,20 +560,37 @@ def truth_at_end(rd: RunDir, start: dict[str, Any], first_index: int, last_index
 # ---------------------------------------------------------------------------------------------
 # Result assembly: the one function live and replay call
 # ---------------------------------------------------------------------------------------------
-def compute_swaying_result(block: Any, start: dict[str, Any], end: dict[str, Any], truth: dict[str, Any] | None,
-                           *, complete: bool = True) -> tuple[dict[str, Any], Any]:
+def compute_swaying_result(
+    block: Any,
+    start: dict[str, Any],
+    end: dict[str, Any],
+    truth: dict[str, Any] | None,
+    *,
+    complete: bool = True,
+) -> tuple[dict[str, Any], Any]:
     """The estimator (start["method"]) and the static coarse alignment on the window's samples →
     (result dict, the SwayingSolution for the report)."""
     if len(block) == 0:
         raise InputError("no IMU samples were read; nothing to align")
     rate = float(start["imu"]["rate_hz"])
     lat = float(start["latitude_deg"])
-    sol = align_swaying_block(block, lat, rate_hz=rate, method=start["method"],
-                              max_sway_period_s=float(start["max_sway_period_s"]),
-                              height_m=float(start.get("height_m", 0.0)))
+    sol = align_swaying_block(
+        block,
+        lat,
+        rate_hz=rate,
+        method=start["method"],
+        max_sway_period_s=float(start["max_sway_period_s"]),
+        height_m=float(start.get("height_m", 0.0)),
+    )
     coarse = coarse_align(block.gyro_rad_s, block.accel_g, rate, lat)
-    main = {"heading_deg": sol.heading_deg, "heading_std_deg": sol.heading_std_deg, "pitch_deg": sol.pitch_deg,
-            "roll_deg": sol.roll_deg, "pitch_std_deg": sol.pitch_std_deg, "roll_std_deg": sol.roll_std_deg}
+    main = {
+        "heading_deg": sol.heading_deg,
+        "heading_std_deg": sol.heading_std_deg,
+        "pitch_deg": sol.pitch_deg,
+        "roll_deg": sol.roll_deg,
+        "pitch_std_deg": sol.pitch_std_deg,
+        "roll_std_deg": sol.roll_std_deg,
+    }
     result: dict[str, Any] = {
         "schema": SCHEMA,
         "kind": KIND,
@@ -480,10 +603,15 @@ def compute_swaying_result(block: Any, start: dict[str, Any], end: dict[str, Any
         "minimum_duration_s": minimum_duration_s(float(start["max_sway_period_s"])),
         "methods": {
             sol.method: dict(main),
-            "coarse": {"heading_deg": coarse.heading_deg, "heading_std_deg": coarse.heading_std_deg,
-                       "pitch_deg": coarse.pitch_deg, "roll_deg": coarse.roll_deg,
-                       "note": "static analytic coarse alignment (window means); its σ is the "
-                               "still-base noise limit and ignores the sway", **coarse.diagnostics},
+            "coarse": {
+                "heading_deg": coarse.heading_deg,
+                "heading_std_deg": coarse.heading_std_deg,
+                "pitch_deg": coarse.pitch_deg,
+                "roll_deg": coarse.roll_deg,
+                "note": "static analytic coarse alignment (window means); its σ is the "
+                "still-base noise limit and ignores the sway",
+                **coarse.diagnostics,
+            },
         },
         "diagnostics": sol.diagnostics,
         "imu": {**end["imu"], "rate_hz": rate},
@@ -497,8 +625,9 @@ def compute_swaying_result(block: Any, start: dict[str, Any], end: dict[str, Any
     return json.loads(json.dumps(jsonable(result), allow_nan=False)), sol
 
 
-def result_from_run(rd: RunDir, block: Any, start: dict[str, Any], end: dict[str, Any],
-                    complete: bool) -> tuple[dict[str, Any], Any]:
+def result_from_run(
+    rd: RunDir, block: Any, start: dict[str, Any], end: dict[str, Any], complete: bool
+) -> tuple[dict[str, Any], Any]:
     """The result of a run from its window's samples (live: the driver's arrays; replay: decoded)."""
     truth = None
     if start.get("simulate"):
@@ -517,12 +646,14 @@ def replay_swaying_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
     events = rd.events()
     start = next((e for e in events if e.get("event") == "start"), None)
     if start is None or start.get("kind") != KIND:
-        raise InputError(f"{rd.path}: not an `align --mode swaying` run ({EVENTS} has no start event of "
-                         f"kind {KIND})")
+        raise InputError(
+            f"{rd.path}: not an `align --mode swaying` run ({EVENTS} has no start event of kind {KIND})"
+        )
     end = next((e for e in events if e.get("event") == "end"), None)
     if end is None or not end["imu"].get("samples"):
-        raise InputError(f"{rd.path}: the run has no window of samples (killed before it saved one); "
-                         "nothing to recompute")
+        raise InputError(
+            f"{rd.path}: the run has no window of samples (killed before it saved one); nothing to recompute"
+        )
     imu_cfg = start["imu"]
     raw = rd.file(IMU_RAW).read_bytes() if rd.file(IMU_RAW).exists() else b""
     block, _ = decode_imu_stream(raw, imu_cfg["rate_hz"], imu_cfg["rot_format"], imu_cfg["rot_units"])
@@ -566,12 +697,19 @@ def cone_residuals(block: Any, sol: Any, max_sway_period_s: float) -> dict[str, 
     axis = np.asarray(sol.earth_axis_ib0, dtype=float)
     u_end = quat_to_dcm(q[-1]) @ np.asarray(sol.c_b_n)[2]  # C_b^{i_b0}(t_end)·(up in b)
     ang = -OMEGA_EARTH_RAD_S * (t_end - t_c)[:, None]
-    u = (u_end * np.cos(ang) + np.cross(axis, u_end) * np.sin(ang)
-         + axis * (axis @ u_end) * (1.0 - np.cos(ang)))  # Rodrigues, vectorized
+    u = (
+        u_end * np.cos(ang)
+        + np.cross(axis, u_end) * np.sin(ang)
+        + axis * (axis @ u_end) * (1.0 - np.cos(ang))
+    )  # Rodrigues, vectorized
     g = np.linalg.norm(f, axis=1).mean()
     res = (f - g * u) / STANDARD_GRAVITY_M_S2 * 1e6
-    return {"t_s": t_c, "residual_ug": res, "gyro_dps": block.gyro_rad_s[::max(1, int(rate // 20))] / DEG,
-            "t_gyro_s": (block.sample_index[::max(1, int(rate // 20))] - block.sample_index[0]) / rate}
+    return {
+        "t_s": t_c,
+        "residual_ug": res,
+        "gyro_dps": block.gyro_rad_s[:: max(1, int(rate // 20))] / DEG,
+        "t_gyro_s": (block.sample_index[:: max(1, int(rate // 20))] - block.sample_index[0]) / rate,
+    }
 
 
 def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], path: str | Path) -> Path:
@@ -587,8 +725,10 @@ def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], p
         ax.plot(resid["t_gyro_s"], resid["gyro_dps"][:, j], lw=0.6, label=f"gyro {name}")
     ax.set_ylabel("body rate [deg/s]")
     ax.set_xlabel("device time since the first sample [s]")
-    title = (f"align --mode swaying ({result['method']}): {result['heading_deg']:.3f}° ± "
-             f"{result['heading_std_deg']:.3f}° (1σ)")
+    title = (
+        f"align --mode swaying ({result['method']}): {result['heading_deg']:.3f}° ± "
+        f"{result['heading_std_deg']:.3f}° (1σ)"
+    )
     if "truth" in result:
         title += f", truth {result['truth']['heading_deg']:.3f}°, error {result['error_deg']:+.3f}°"
     ax.set_title(title, fontsize=10)
@@ -599,8 +739,9 @@ def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], p
         ax.plot(resid["t_s"], resid["residual_ug"][:, j], marker=".", label=f"i_b0 {name}")
     ax.set_ylabel("cone-fit residual [µg]")
     ax.set_xlabel("window centre, device time [s]")
-    ax.set_title("smoothed specific force in i_b0 − fitted Earth-rate cone (4-period Blackman–Harris)",
-                 fontsize=9)
+    ax.set_title(
+        "smoothed specific force in i_b0 − fitted Earth-rate cone (4-period Blackman–Harris)", fontsize=9
+    )
     ax.legend(loc="upper right", fontsize=8)
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
@@ -625,12 +766,25 @@ def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool 
         RunDir(Path(json_path).parent).write_json(Path(json_path).name, result)
     if report:
         with contextlib.suppress(ValueError):  # a window too short for one residual point: no plot
-            write_swaying_report(result, cone_residuals(w.block, sol, float(w.start["max_sway_period_s"])),
-                                 rd.report_path)
+            write_swaying_report(
+                result, cone_residuals(w.block, sol, float(w.start["max_sway_period_s"])), rd.report_path
+            )
     if not complete:
         raise _abort_or(w.stop, rd, f"the result of the {result['duration_device_s']:.1f} s read is saved")
     return result
 
 
-__all__ = ["KIND", "METHODS", "ShipSim", "ShipSimProcess", "acquire", "compute_swaying_result", "finish",
-           "load_bench", "parse_sway", "replay_swaying_run", "result_from_run", "write_swaying_report"]
+__all__ = [
+    "KIND",
+    "METHODS",
+    "ShipSim",
+    "ShipSimProcess",
+    "acquire",
+    "compute_swaying_result",
+    "finish",
+    "load_bench",
+    "parse_sway",
+    "replay_swaying_run",
+    "result_from_run",
+    "write_swaying_report",
+]

@@ -32,21 +32,48 @@ def _add(parser: argparse.ArgumentParser, flag: str, **kwargs: Any) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The swaying mode's own flags on the `align` parser."""
-    _add(parser, "--sway", default=None, metavar="SPEC",
-         help=f"swaying, simulated: \"roll=AMP:PERIOD,pitch=AMP:PERIOD,yaw=AMP:PERIOD,heave=AMP_M:PERIOD\" "
-         f"(deg or m, s; 'none' = still ship; default the reference {sr.REFERENCE_SWAY!r})")
-    _add(parser, "--sway-period", type=float, default=None, metavar="S",
-         help=f"swaying: the longest sway period [s]; the smoothing window is 4 of them and the window "
-         f"must hold 8 (default: from --sway when simulated, else {sr.DEFAULT_SWAY_PERIOD_S:g})")
-    _add(parser, "--method", choices=METHODS, default=None,
-         help="swaying: cone (constrained fit, default) | cone-gls (plus a noise-weighted step) | circle "
-         "(the paper's free space-circle fit)")
-    _add(parser, "--lever-arm", default=None, metavar="X,Y,Z",
-         help="swaying, simulated: the IMU's position from the ship's centre of rotation [m] (default "
-         "1,2,1.5); gnss: the antenna's position in IMU axes [m]")
+    _add(
+        parser,
+        "--sway",
+        default=None,
+        metavar="SPEC",
+        help=f'swaying, simulated: "roll=AMP:PERIOD,pitch=AMP:PERIOD,yaw=AMP:PERIOD,heave=AMP_M:PERIOD" '
+        f"(deg or m, s; 'none' = still ship; default the reference {sr.REFERENCE_SWAY!r})",
+    )
+    _add(
+        parser,
+        "--sway-period",
+        type=float,
+        default=None,
+        metavar="S",
+        help=f"swaying: the longest sway period [s]; the smoothing window is 4 of them and the window "
+        f"must hold 8 (default: from --sway when simulated, else {sr.DEFAULT_SWAY_PERIOD_S:g})",
+    )
+    _add(
+        parser,
+        "--method",
+        choices=METHODS,
+        default=None,
+        help="swaying: cone (constrained fit, default) | cone-gls (plus a noise-weighted step) | circle "
+        "(the paper's free space-circle fit)",
+    )
+    _add(
+        parser,
+        "--lever-arm",
+        default=None,
+        metavar="X,Y,Z",
+        help="swaying, simulated: the IMU's position from the ship's centre of rotation [m] (default "
+        "1,2,1.5); gnss: the antenna's position in IMU axes [m]",
+    )
     _add(parser, "--heading", type=float, default=None, metavar="DEG", help="simulated (mean) heading")
-    _add(parser, "--latitude", type=float, default=None, metavar="DEG",
-         help="site latitude (simulated; on hardware it overrides [site] latitude_deg)")
+    _add(
+        parser,
+        "--latitude",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="site latitude (simulated; on hardware it overrides [site] latitude_deg)",
+    )
 
 
 def parse_lever_arm(text: str | None) -> tuple[float, float, float] | None:
@@ -58,8 +85,10 @@ def parse_lever_arm(text: str | None) -> tuple[float, float, float] | None:
     except ValueError:
         values = ()
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise InputError(f"--lever-arm {text}: give three numbers X,Y,Z in metres (IMU axes x right, "
-                         "y forward, z up), e.g. --lever-arm 1,2,1.5")
+        raise InputError(
+            f"--lever-arm {text}: give three numbers X,Y,Z in metres (IMU axes x right, "
+            "y forward, z up), e.g. --lever-arm 1,2,1.5"
+        )
     return values  # type: ignore[return-value]
 
 
@@ -70,25 +99,37 @@ def _check(args: argparse.Namespace) -> tuple[float, dict[str, list[list[float]]
     if not args.simulate:
         for flag in ("sway", "heading", "grade", "seed", "time_scale", "lever_arm"):
             if getattr(args, flag, None) is not None:
-                raise InputError(f"--{flag.replace('_', '-')} is for --simulate; on a real ship give "
-                                 "--sway-period for the longest sway period")
+                hint = (
+                    "; on a real ship give --sway-period for the longest sway period"
+                    if flag == "sway"
+                    else ""
+                )
+                raise InputError(f"--{flag.replace('_', '-')} is for --simulate (the simulated ship){hint}")
         if args.fault:
             raise InputError("--fault is for --simulate")
     sway = sr.parse_sway(args.sway if args.sway is not None else sr.REFERENCE_SWAY) if args.simulate else {}
+    parse_lever_arm(args.lever_arm)
     period = args.sway_period if args.sway_period is not None else sr.longest_period_s(sway)
     if not (math.isfinite(period) and 0.0 < period <= 120.0):
         raise InputError(f"--sway-period {period:g}: give the longest sway period in seconds (0 … 120)")
     duration = sr.DEFAULT_DURATION_S if args.duration is None else float(args.duration)
     need = minimum_duration_s(period)
     if not math.isfinite(duration) or duration < need:
-        raise InputError(f"--duration {duration:g}: too short for the swaying alignment, which needs at least "
-                         f"{need:.0f} device seconds (two smoothing windows of 4 × the {period:g} s longest "
-                         "sway period); 300 s gives ~0.05° with a navigation-grade IMU")
+        raise InputError(
+            f"--duration {duration:g}: too short for the swaying alignment, which needs at least "
+            f"{need:.0f} device seconds (two smoothing windows of 4 × the {period:g} s longest "
+            "sway period); 300 s gives ~0.05° with a navigation-grade IMU"
+        )
     if args.latitude is not None and not (math.isfinite(args.latitude) and abs(args.latitude) <= 85.0):
-        raise InputError(f"--latitude {args.latitude:g}: use −85 … 85 degrees (north positive); nearer the "
-                         "pole the Earth axis has no usable horizontal projection")
-    if args.simulate and args.time_scale is not None and not (math.isfinite(args.time_scale)
-                                                             and args.time_scale > 0):
+        raise InputError(
+            f"--latitude {args.latitude:g}: use −85 … 85 degrees (north positive); nearer the "
+            "pole the Earth axis has no usable horizontal projection"
+        )
+    if (
+        args.simulate
+        and args.time_scale is not None
+        and not (math.isfinite(args.time_scale) and args.time_scale > 0)
+    ):
         raise InputError(f"--time-scale {args.time_scale:g}: use a factor greater than 0")
     return duration, sway, float(period)
 
@@ -116,24 +157,42 @@ def run(args: argparse.Namespace) -> int:
         )
         settings.update(latitude_deg=sim.latitude_deg, height_m=0.0, simulate=sim.to_dict())
         with sr.ShipSimProcess(sim) as endpoints:  # type: ignore[arg-type]
-            window = sr.acquire(rd, imu_port=str(endpoints["imu"]), rate_hz=1000.0, duration_s=duration,
-                                settings=settings, config_extra={"endpoints": endpoints})
+            window = sr.acquire(
+                rd,
+                imu_port=str(endpoints["imu"]),
+                rate_hz=1000.0,
+                duration_s=duration,
+                settings=settings,
+                config_extra={"endpoints": endpoints},
+            )
         # the simulator has stopped (its truth log is complete) before the estimator takes the CPU
     else:
         imu = sr.load_bench(args.config, args.latitude)
         if abs(imu.latitude_deg) > 85.0:
-            raise InputError(f"{imu.source}: [site] latitude_deg = {imu.latitude_deg:g}: the swaying alignment "
-                             "needs −85 … 85 degrees")
+            raise InputError(
+                f"{imu.source}: [site] latitude_deg = {imu.latitude_deg:g}: the swaying alignment "
+                "needs −85 … 85 degrees"
+            )
         settings.update(latitude_deg=imu.latitude_deg, height_m=imu.height_m, simulate=None)
-        window = sr.acquire(rd, imu_port=imu.port, rate_hz=imu.rate_hz, baudrate=imu.baudrate,
-                            duration_s=duration, settings=settings, configure_imu=True,
-                            config_extra={"bench": imu.__dict__})
+        window = sr.acquire(
+            rd,
+            imu_port=imu.port,
+            rate_hz=imu.rate_hz,
+            baudrate=imu.baudrate,
+            duration_s=duration,
+            settings=settings,
+            configure_imu=True,
+            config_extra={"bench": imu.__dict__},
+        )
     t_read = time.monotonic()
     result = sr.finish(rd, window, json_path=args.json)
     print_summary(result, run_dir=rd.path)
     t_end = time.monotonic()
-    print(f"wall time {t_end - t_wall:.1f} s: device (and simulator) {t_read - t_wall:.1f} s, estimator and "
-          f"report {t_end - t_read:.1f} s", file=sys.stderr)
+    print(
+        f"wall time {t_end - t_wall:.1f} s: device (and simulator) {t_read - t_wall:.1f} s, estimator and "
+        f"report {t_end - t_read:.1f} s",
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -147,18 +206,31 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
         if not console.is_terminal:
             console = Console(width=max(console.width, 120))
     head = Table(title="northfinder align --mode swaying", show_header=False, box=None)
-    head.add_row("heading", f"[bold]{result['heading_deg']:.4f}° ± {result['heading_std_deg']:.4f}°[/] "
-                 f"(1σ, {result['method']})")
-    head.add_row("pitch, roll", f"{result['pitch_deg']:+.3f}° ± {result['pitch_std_deg']:.3f}°, "
-                 f"{result['roll_deg']:+.3f}° ± {result['roll_std_deg']:.3f}° (at the end of the window)")
+    head.add_row(
+        "heading",
+        f"[bold]{result['heading_deg']:.4f}° ± {result['heading_std_deg']:.4f}°[/] (1σ, {result['method']})",
+    )
+    head.add_row(
+        "pitch, roll",
+        f"{result['pitch_deg']:+.3f}° ± {result['pitch_std_deg']:.3f}°, "
+        f"{result['roll_deg']:+.3f}° ± {result['roll_std_deg']:.3f}° (at the end of the window)",
+    )
     imu = result["imu"]
-    head.add_row("device time", f"{result['duration_device_s']:.1f} s, {imu['samples']} samples, lost "
-                 f"{imu['lost_samples']}, bad CRC {imu['stats']['bad_crc']}")
+    head.add_row(
+        "device time",
+        f"{result['duration_device_s']:.1f} s, {imu['samples']} samples, lost "
+        f"{imu['lost_samples']}, bad CRC {imu['stats']['bad_crc']}",
+    )
     if "truth" in result:
         tr = result["truth"]
-        ratio = abs(result["error_deg"]) / result["heading_std_deg"] if result["heading_std_deg"] else math.inf
-        head.add_row("truth", f"heading {tr['heading_deg']:.4f}°, pitch {tr['pitch_deg']:+.3f}°, roll "
-                     f"{tr['roll_deg']:+.3f}° at device time {tr['t_device_s']:.3f} s")
+        ratio = (
+            abs(result["error_deg"]) / result["heading_std_deg"] if result["heading_std_deg"] else math.inf
+        )
+        head.add_row(
+            "truth",
+            f"heading {tr['heading_deg']:.4f}°, pitch {tr['pitch_deg']:+.3f}°, roll "
+            f"{tr['roll_deg']:+.3f}° at device time {tr['t_device_s']:.3f} s",
+        )
         head.add_row("error", f"[bold]{result['error_deg']:+.4f}°[/] ({ratio:.2f} σ)")
     if not result.get("complete", True):
         head.add_row("[red]INCOMPLETE[/]", "stopped before the end of the window")
@@ -168,8 +240,12 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
         t.add_column(col, justify="right")
     for name, m in result["methods"].items():
         err = m.get("error_deg")
-        t.add_row(name + (" *" if name == result["method"] else ""), f"{m['heading_deg']:.4f}",
-                  f"{m['heading_std_deg']:.4f}", "—" if err is None else f"{err:+.4f}")
+        t.add_row(
+            name + (" *" if name == result["method"] else ""),
+            f"{m['heading_deg']:.4f}",
+            f"{m['heading_std_deg']:.4f}",
+            "—" if err is None else f"{err:+.4f}",
+        )
     console.print(t)
     if run_dir is not None:
         console.print(f"run directory: {run_dir}")
