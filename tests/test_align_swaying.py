@@ -141,7 +141,7 @@ def test_ctrl_c_keeps_the_data_and_exits_130(tmp_path):
             "swaying",
             "--simulate",
             "--time-scale",
-            "20",
+            str(TIME_SCALE),
             "--out",
             str(run_dir),
         ],
@@ -223,6 +223,49 @@ def test_an_imu_without_accelerometers_is_refused_in_one_line(tmp_path):
     assert proc.returncode == 3
     line = _error_line(proc.stderr)
     assert port in line and "no valid accelerometers" in line
+
+
+def test_hardware_path_on_the_simulated_ship_aligns_and_replays(tmp_path):
+    """The --config path (IMU configured and read back, latitude from [site]) against firmware-sim's
+    ship started by hand: no truth in the result, the heading within the ship's yaw sway (±3°) plus
+    3σ of its mean heading, and replay bit-identical."""
+    sim = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "firmware_sim",
+            "--scenario",
+            "ship",
+            "--heading",
+            "123.0",
+            "--seed",
+            "5",
+            "--time-scale",
+            str(TIME_SCALE),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+        start_new_session=True,
+    )
+    run_dir = tmp_path / "run"
+    try:
+        port = json.loads(sim.stdout.readline())["imu"]
+        bench = tmp_path / "bench.toml"
+        bench.write_text(f'[imu]\nport = "{port}"\n\n[site]\nlatitude_deg = 40.0\n')
+        proc = _cli("--config", str(bench), "--duration", "80", "--out", str(run_dir), cwd=tmp_path)
+    finally:
+        sim.terminate()
+        sim.communicate(timeout=20)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((run_dir / RESULT).read_text())
+    assert "truth" not in result and "error_deg" not in result
+    assert result["duration_device_s"] == 80.0 and result["imu"]["lost_samples"] == 0
+    off = abs(((result["heading_deg"] - 123.0 + 180.0) % 360.0) - 180.0)
+    assert off <= 3.0 + 3.0 * result["heading_std_deg"], (result["heading_deg"], result["heading_std_deg"])
+    again, complete = sr.replay_swaying_run(run_dir)
+    assert complete is True and again == result
 
 
 @pytest.mark.parametrize(

@@ -212,8 +212,8 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
     )
     head.add_row(
         "pitch, roll",
-        f"{result['pitch_deg']:+.3f}° ± {result['pitch_std_deg']:.3f}°, "
-        f"{result['roll_deg']:+.3f}° ± {result['roll_std_deg']:.3f}° (at the end of the window)",
+        f"{result['pitch_deg']:+.3f}° ± {result['pitch_std_deg']:.4f}°, "
+        f"{result['roll_deg']:+.3f}° ± {result['roll_std_deg']:.4f}° (at the end of the window)",
     )
     imu = result["imu"]
     head.add_row(
