@@ -133,6 +133,16 @@ class PtyPort:
         """Bytes waiting in the backlog for the client to read."""
         return len(self._pending)
 
+    def discard(self) -> None:
+        """Forget every byte the client has not read yet: the backlog and the kernel's queue."""
+        if self.closed:
+            return
+        self._pending.clear()
+        try:
+            termios.tcflush(self.master_fd, termios.TCOFLUSH)  # what the old client left unread
+        except termios.error:
+            pass
+
     def close(self) -> None:
         """Close both ends; a connected client sees the port vanish. Idempotent."""
         if self.closed:

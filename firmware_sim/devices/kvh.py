@@ -23,7 +23,6 @@ import logging
 import math
 import os
 import tempfile
-import termios
 from collections.abc import Callable
 from typing import Any
 
@@ -140,19 +139,6 @@ def unpack_messages(data: bytes) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # The IMU
 # ---------------------------------------------------------------------------------------------
-class _ImuPort(PtyPort):
-    """The IMU's pty, plus `discard()`: forget every byte not yet read (backlog and kernel queue)."""
-
-    def discard(self) -> None:
-        if self.closed:
-            return
-        self._pending.clear()
-        try:
-            termios.tcflush(self.master_fd, termios.TCOFLUSH)  # what the old client left unread
-        except termios.error:
-            pass
-
-
 class KvhImu(Device):
     """A format-A IMU on a pty. Samples k = 1, 2, … cover [(k−1)/rate, k/rate] from `epoch`.
 
@@ -217,10 +203,10 @@ class KvhImu(Device):
         self.messages_sent = 0
         self._rx = bytearray()
 
-    def _open_port(self) -> _ImuPort:
+    def _open_port(self) -> PtyPort:
         if self._backlog_bytes is None:
-            return _ImuPort("imu")
-        return _ImuPort("imu", backlog_bytes=self._backlog_bytes)
+            return PtyPort("imu")
+        return PtyPort("imu", backlog_bytes=self._backlog_bytes)
 
     def _event(self, name: str, **fields: Any) -> None:
         if self.on_event is not None:
