@@ -285,6 +285,7 @@ def faults_summary(events: Sequence[dict[str, Any]]) -> dict[str, Any]:
     kept = [e for e in events if e.get("event") == "position"]
     imu = {k: int(sum(int(e.get("imu", {}).get(k, 0)) for e in stats)) for k in _IMU_COUNTERS}
     imu["reconnects"] = int(sum(int(e.get("imu_reconnects", 0)) for e in stats))
+    imu["stalls"] = int(sum(int(e.get("imu_stalls", 0)) for e in stats))
     imu["lost_in_dwells"] = int(sum(int(e["imu"]["lost"]) for e in kept))
     accel: dict[str, Any] = {
         k: int(sum(int(e.get("accel", {}).get(k, 0)) for e in stats)) for k in _ACCEL_COUNTERS

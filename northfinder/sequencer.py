@@ -565,7 +565,13 @@ class Sequencer:
         idx = np.concatenate([np.asarray(b.sample_index) for b in blocks])
         gap = int(np.max(np.diff(idx))) - 1 if idx.size > 1 else 0
         lost = int(idx[-1] - idx[0] + 1 - idx.size)
-        if gap > self.imu_max_gap_s * rate:
+        stalls = [k for k in getattr(self.imu, "stall_indices", []) if idx[0] < k <= idx[-1]]
+        if stalls:
+            out.append(
+                f"imu stream paused (silent) inside the dwell at sample {stalls[0]}: a timeout, its length "
+                "unknown (the 7-bit sequence wraps)"
+            )
+        elif gap > self.imu_max_gap_s * rate:
             out.append(f"imu gap of {gap} samples ({gap / rate:.3f} s device time) inside the dwell")
         elif lost > self.max_lost_fraction * idx.size:
             out.append(f"imu lost {lost} of {lost + idx.size} samples")
@@ -610,6 +616,7 @@ class Sequencer:
                 "event": "stats",
                 "imu": imu_stats.as_dict() if hasattr(imu_stats, "as_dict") else dict(vars(imu_stats)),
                 "imu_reconnects": int(getattr(self.imu, "reconnects", 0)),
+                "imu_stalls": len(getattr(self.imu, "stall_indices", [])),
                 "accel": acc_stats.as_dict() if hasattr(acc_stats, "as_dict") else dict(vars(acc_stats)),
                 "emergencies": emcy,
             }

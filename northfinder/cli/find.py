@@ -480,7 +480,8 @@ def measure(
     run directory, return the result. A signal stops it: RunAborted (exit 130, 143 for SIGTERM)
     after the stage is stopped and what was measured is saved; a fault the run cannot get past
     (RunFailed) also saves first. `previous`/`skip`: a resumed run's positions already measured
-    (and their plan indices); `rundir.session` > 1 then. `seq_kwargs` go to the Sequencer."""
+    (and their plan indices); `rundir.session` > 1 then. `seq_kwargs` go to the Sequencer (an
+    `on_progress` there is called after the progress view)."""
     truth = settings.truth() if settings else None
     previous = list(previous or [])
     sim_info = None
@@ -527,6 +528,14 @@ def measure(
             }
         )
         view = _ProgressView(cfg.run.positions, cfg.run.dwell_s, enabled=progress)
+        seq_kwargs = dict(seq_kwargs or {})
+        extra = seq_kwargs.pop("on_progress", None)
+
+        def on_progress(p: Progress) -> None:
+            view(p)
+            if extra is not None:
+                extra(p)
+
         seq = Sequencer(
             tt,
             imu,
@@ -534,11 +543,11 @@ def measure(
             cfg.run,
             allow_home=cfg.turntable.allow_home,
             rundir=rundir,
-            on_progress=view,
+            on_progress=on_progress,
             stop_flag=stop,
             accel_rate_hz=cfg.accelerometer.rate_hz,
             skip=skip or set(),
-            **(seq_kwargs or {}),
+            **seq_kwargs,
         )
         try:
             with view:

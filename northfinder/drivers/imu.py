@@ -112,7 +112,10 @@ class Imu:
         rot_units: str = "RAD",
         wait_for_data: bool = True,
         transport: _ByteTransport | None = None,
+        stall_s: float = 0.1,
     ) -> None:
+        """`stall_s`: host seconds without a byte (while streaming) that count as a pause of the
+        stream (see :attr:`stall_indices`); a 1 kHz IMU never pauses that long."""
         self.port = port
         self.timeout_s = float(timeout_s)
         self.rate_hz = float(rate_hz)
@@ -130,6 +133,9 @@ class Imu:
             raw_log = open(raw_log, "wb")  # noqa: SIM115 - closed in close()
         self._raw_log = raw_log
         self.reconnects = 0
+        self.stall_s = float(stall_s)
+        self._stalls: list[int] = []
+        self._mark_stall = False
         self._t = transport if transport is not None else self._open_transport()
         self._decoder = KvhDecoder()
         self._cond = threading.Condition()
@@ -185,6 +191,7 @@ class Imu:
                 with self._cond:
                     self._error = None
                     self._pending, self._pending_n = [], 0
+                    self._mark_stall = True  # the samples missed while the link was down
                     frames0 = self._decoder.stats.frames
                 self._stop = threading.Event()
                 self._thread = threading.Thread(target=self._reader, name=f"imu-reader {self.port}",
@@ -213,7 +220,18 @@ class Imu:
             time.sleep(backoff_s)
             backoff_s = min(2.0 * backoff_s, max_wait_s)
 
+    @property
+    def stall_indices(self) -> list[int]:
+        """Device sample index of the first frame after each pause of the stream (no byte for
+        `stall_s` host seconds outside config mode, or a reconnect). A pause longer than 128
+        samples cannot be counted from the 7-bit sequence number (it aliases), so a sample range
+        that contains one of these indices has an unknown gap: the caller measures it again."""
+        with self._cond:
+            return list(self._stalls)
+
     def _reader(self) -> None:
+        last_data = time.monotonic()
+        empty = False
         while not self._stop.is_set():
             try:
                 data = self._t.read_available()
@@ -222,12 +240,21 @@ class Imu:
                     self._error = exc
                     self._cond.notify_all()
                 return
+            now = time.monotonic()
             if not data:
+                empty = True
                 continue
+            paused = empty and now - last_data >= self.stall_s
+            last_data, empty = now, False
             with self._cond:
+                if paused and not self._config_mode and self._decoder.stats.frames:
+                    self._mark_stall = True
                 if self._config_mode:
                     self._text += data
                 out = self._decoder.feed(data)
+                if len(out) and self._mark_stall:
+                    self._stalls.append(int(out.sample_index[0]))
+                    self._mark_stall = False
                 if len(out):
                     index, frames = out.sample_index, out.frames
                     if self._discard_next:
