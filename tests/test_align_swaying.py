@@ -179,25 +179,24 @@ def test_ctrl_c_keeps_the_data_and_exits_130(tmp_path):
 # ---------------------------------------------------------------------------------------------
 # User mistakes: one line, non-zero exit
 # ---------------------------------------------------------------------------------------------
-def test_sway_that_saturates_the_gyro_is_refused_in_one_line(tmp_path):
+def test_sway_that_saturates_the_gyro_is_refused_in_one_line(tmp_path, capsys):
     """Roll 30° at 0.3 s peaks at 30·2π/0.3 = 628 °/s, beyond the KVH's ±490 °/s: refused on the
-    first second of data rather than after the window."""
-    proc = _cli(
+    first second of data rather than after the window (the CLI in-process, the simulator not)."""
+    argv = [
         "--simulate",
         "--time-scale",
         str(TIME_SCALE),
         "--sway",
         "roll=30:0.3",
         "--out",
-        str(tmp_path / "run"),
-        cwd=tmp_path,
-    )
-    assert proc.returncode == 2
-    line = _error_line(proc.stderr)
+        str(tmp_path / "r"),
+    ]
+    assert main(["align", "--mode", "swaying", *argv]) == 2
+    line = _error_line(capsys.readouterr().err)
     assert "saturates the gyro" in line and "490" in line
 
 
-def test_an_imu_without_accelerometers_is_refused_in_one_line(tmp_path):
+def test_an_imu_without_accelerometers_is_refused_in_one_line(tmp_path, capsys):
     """firmware-sim's gyro-only KVH (imu_variant = "gyro-3axis": status bits 4–6 clear) read through
     the hardware path (--config bench.toml): one line naming the port."""
     sim_toml = tmp_path / "sim.toml"
@@ -216,19 +215,20 @@ def test_an_imu_without_accelerometers_is_refused_in_one_line(tmp_path):
         port = json.loads(sim.stdout.readline())["imu"]
         bench = tmp_path / "bench.toml"
         bench.write_text(f'[imu]\nport = "{port}"\n\n[site]\nlatitude_deg = 40.0\n')
-        proc = _cli("--config", str(bench), "--duration", "100", "--out", str(tmp_path / "run"), cwd=tmp_path)
+        argv = ["--config", str(bench), "--duration", "100", "--out", str(tmp_path / "run")]
+        rc = main(["align", "--mode", "swaying", *argv])
     finally:
         sim.terminate()
         sim.communicate(timeout=20)
-    assert proc.returncode == 3
-    line = _error_line(proc.stderr)
+    assert rc == 3
+    line = _error_line(capsys.readouterr().err)
     assert port in line and "no valid accelerometers" in line
 
 
 def test_hardware_path_on_the_simulated_ship_aligns_and_replays(tmp_path):
-    """The --config path (IMU configured and read back, latitude from [site]) against firmware-sim's
-    ship started by hand: no truth in the result, the heading within the ship's yaw sway (±3°) plus
-    3σ of its mean heading, and replay bit-identical."""
+    """The --config path (IMU configured and read back, latitude from [site], --sway-period for a
+    faster sway: a 40 s window) against firmware-sim's ship started by hand: no truth in the result,
+    the heading within the ship's yaw sway (±3°) plus 3σ of its mean heading, replay bit-identical."""
     sim = subprocess.Popen(
         [
             sys.executable,
@@ -236,6 +236,8 @@ def test_hardware_path_on_the_simulated_ship_aligns_and_replays(tmp_path):
             "firmware_sim",
             "--scenario",
             "ship",
+            "--sway",
+            "roll=10:4,pitch=5:3,yaw=3:5",
             "--heading",
             "123.0",
             "--seed",
@@ -254,14 +256,24 @@ def test_hardware_path_on_the_simulated_ship_aligns_and_replays(tmp_path):
         port = json.loads(sim.stdout.readline())["imu"]
         bench = tmp_path / "bench.toml"
         bench.write_text(f'[imu]\nport = "{port}"\n\n[site]\nlatitude_deg = 40.0\n')
-        proc = _cli("--config", str(bench), "--duration", "80", "--out", str(run_dir), cwd=tmp_path)
+        proc = _cli(
+            "--config",
+            str(bench),
+            "--sway-period",
+            "5",
+            "--duration",
+            "40",
+            "--out",
+            str(run_dir),
+            cwd=tmp_path,
+        )
     finally:
         sim.terminate()
         sim.communicate(timeout=20)
     assert proc.returncode == 0, proc.stderr
     result = json.loads((run_dir / RESULT).read_text())
     assert "truth" not in result and "error_deg" not in result
-    assert result["duration_device_s"] == 80.0 and result["imu"]["lost_samples"] == 0
+    assert result["duration_device_s"] == 40.0 and result["imu"]["lost_samples"] == 0
     off = abs(((result["heading_deg"] - 123.0 + 180.0) % 360.0) - 180.0)
     assert off <= 3.0 + 3.0 * result["heading_std_deg"], (result["heading_deg"], result["heading_std_deg"])
     again, complete = sr.replay_swaying_run(run_dir)

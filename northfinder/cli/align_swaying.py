@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import threading
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -138,10 +139,19 @@ def default_out() -> Path:
     return Path("runs") / datetime.now(UTC).strftime("align-swaying-%Y%m%dT%H%M%SZ")
 
 
+def _preload_matplotlib() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot  # noqa: F401
+
+
 def run(args: argparse.Namespace) -> int:
     duration, sway, period = _check(args)
     rd = RunDir(args.out or default_out())
     t_wall = time.monotonic()
+    # matplotlib takes a second or two to import: do it while the simulator or the IMU port starts
+    threading.Thread(target=_preload_matplotlib, name="preload-matplotlib", daemon=True).start()
     settings: dict[str, Any] = {"method": args.method or "cone", "max_sway_period_s": period}
     if args.simulate:
         sim = sr.ShipSim(
