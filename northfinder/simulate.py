@@ -15,6 +15,7 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from northfinder.config import BenchConfig
@@ -72,7 +73,14 @@ class SimSettings:
 
 
 class SimulatorProcess:
-    """`with SimulatorProcess(settings) as endpoints:` — firmware-sim runs for the block's duration."""
+    """`with SimulatorProcess(settings) as endpoints:` — firmware-sim runs for the block's duration.
+
+    `required_endpoints` names the keys the scenario must print (the bench's turntable; a ship's
+    or a vehicle's IMU and GNSS — subclasses set it).
+    """
+
+    required_endpoints: tuple[str, ...] = ("turntable",)
+    scenario_name = "bench"
 
     def __init__(self, settings: SimSettings, *, startup_timeout_s: float = 30.0):
         self.settings = settings
@@ -84,6 +92,11 @@ class SimulatorProcess:
         """Start the process and return its endpoints; a clear DeviceError if it fails to start."""
         env = dict(os.environ)
         env.setdefault("PYTHONUNBUFFERED", "1")
+        # firmware_sim sits next to the northfinder package in a checkout: findable from any
+        # working directory even when the project is not installed
+        root = Path(__file__).resolve().parents[1]
+        if (root / "firmware_sim").is_dir():
+            env["PYTHONPATH"] = os.pathsep.join(p for p in (str(root), env.get("PYTHONPATH", "")) if p)
         try:
             # Own process group: a Ctrl-C in the terminal reaches northfinder only, which then stops
             # the stage through the simulator before it terminates it.
@@ -100,12 +113,13 @@ class SimulatorProcess:
         line = self._read_line(self.startup_timeout_s)
         try:
             endpoints = json.loads(line)
-            if not isinstance(endpoints, dict) or "turntable" not in endpoints:
+            if not isinstance(endpoints, dict) or any(k not in endpoints for k in self.required_endpoints):
                 raise ValueError
         except ValueError:
             self.stop()
             raise DeviceError(
-                "firmware-sim", None, f"printed {line[:120]!r} instead of its endpoints JSON"
+                "firmware-sim", None,
+                f"printed {line[:120]!r} instead of the {self.scenario_name} scenario's endpoints",
             ) from None
         self.endpoints = endpoints
         return endpoints

@@ -16,7 +16,6 @@ are the ones firmware-sim is started with.
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import signal
 import sys
@@ -99,40 +98,10 @@ class VehicleSim:
 
 
 class VehicleSimProcess(SimulatorProcess):
-    """SimulatorProcess for the vehicle scenario, whose endpoints are {"imu", "gnss", "gnss_start_utc"}
-    (the base class expects a turntable)."""
+    """SimulatorProcess for the vehicle scenario: endpoints {"imu", "gnss", "gnss_start_utc"}."""
 
-    def start(self) -> dict[str, Any]:
-        import os
-        import subprocess
-
-        # firmware_sim sits next to the northfinder package: findable whatever the working directory
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        root = str(Path(__file__).resolve().parents[2])
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
-        try:
-            self.proc = subprocess.Popen(
-                self.settings.argv(),
-                stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE,
-                stdin=subprocess.DEVNULL,
-                env=env,
-                start_new_session=True,
-            )
-        except OSError as exc:
-            raise DeviceError("firmware-sim", None, f"cannot start it ({exc.strerror})") from None
-        line = self._read_line(self.startup_timeout_s)
-        try:
-            endpoints = json.loads(line)
-            if not isinstance(endpoints, dict) or "imu" not in endpoints or "gnss" not in endpoints:
-                raise ValueError
-        except ValueError:
-            self.stop()
-            raise DeviceError(
-                "firmware-sim", None, f"printed {line[:120]!r} instead of the vehicle scenario's endpoints"
-            ) from None
-        self.endpoints = endpoints
-        return endpoints
+    required_endpoints = ("imu", "gnss")
+    scenario_name = "vehicle"
 
 
 def utc_seconds(iso: str) -> float:

@@ -23,9 +23,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import os
 import signal
-import subprocess
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -186,36 +184,10 @@ class ShipSim:
 
 
 class ShipSimProcess(SimulatorProcess):
-    """SimulatorProcess for the ship scenario, whose endpoints are {"imu": PTY} (the base class
-    expects a turntable); firmware_sim is found next to the northfinder package."""
+    """SimulatorProcess for the ship scenario: endpoints {"imu": PTY}."""
 
-    def start(self) -> dict[str, Any]:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        root = str(Path(__file__).resolve().parents[2])
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
-        try:
-            self.proc = subprocess.Popen(
-                self.settings.argv(),
-                stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE,
-                stdin=subprocess.DEVNULL,
-                env=env,
-                start_new_session=True,
-            )
-        except OSError as exc:
-            raise DeviceError("firmware-sim", None, f"cannot start it ({exc.strerror})") from None
-        line = self._read_line(self.startup_timeout_s)
-        try:
-            endpoints = json.loads(line)
-            if not isinstance(endpoints, dict) or "imu" not in endpoints:
-                raise ValueError
-        except ValueError:
-            self.stop()
-            raise DeviceError(
-                "firmware-sim", None, f"printed {line[:120]!r} instead of the ship scenario's endpoints"
-            ) from None
-        self.endpoints = endpoints
-        return endpoints
+    required_endpoints = ("imu",)
+    scenario_name = "ship"
 
 
 # ---------------------------------------------------------------------------------------------
