@@ -93,7 +93,8 @@ def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS,
         cfg.run.positions = positions
         cfg.run.dwell_s = dwell_s
         cfg.validate()
-        return measure(cfg, RunDir(run_dir), settings=SimSettings(**TRUTH), report=False, progress=False,
+        settings = SimSettings(**TRUTH, time_scale=TIME_SCALE)
+        return measure(cfg, RunDir(run_dir), settings=settings, report=False, progress=False,
                        seq_kwargs={"read_timeout_s": 1.0, **seq_kwargs})
 
 
@@ -407,3 +408,47 @@ def test_sigterm_stops_saves_exits_143_and_resume_finishes_the_run(tmp_path):
     assert again.returncode == 0, again.stdout + again.stderr
     assert f"complete run, {n} of {n} positions" in again.stdout
     assert "identical to the live result.json" in again.stdout
+
+
+def test_fault_with_a_real_bench_config_is_one_line(tmp_path):
+    toml = tmp_path / "bench.toml"
+    toml.write_text("[site]\nlatitude_deg = 40.0\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "northfinder", "find", "--config", str(toml), "--fault", "imu-crc-rate=0.01"],
+        capture_output=True, text=True, cwd=tmp_path, timeout=60, env=_env(),
+    )
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode == 2 and len(lines) == 1 and "--fault imu-crc-rate=0.01" in lines[0]
+    assert "--simulate" in lines[0]
+
+
+def test_sigint_while_homing_stops_the_stage_and_saves(tmp_path):
+    import threading
+
+    from northfinder.errors import RunAborted
+
+    run_dir = tmp_path / "run"
+    timer: list[threading.Timer] = []
+
+    def hook(p) -> None:
+        if p.phase == "reference" and not timer:
+            # a real SIGINT to this process 0.05 s (wall) into homing; measure's handler takes it
+            timer.append(threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)))
+            timer[0].start()
+
+    try:
+        with pytest.raises(RunAborted) as info:
+            _in_process(run_dir, [], on_progress=hook)
+    finally:
+        for t in timer:
+            t.cancel()
+    assert info.value.exit_code == 130 and "SIGINT" in str(info.value) and "0 of 8" in str(info.value)
+    events = _events(run_dir)
+    assert [e["event"] for e in events if e["event"] in ("home", "abort")] == ["home", "abort"]
+    abort = next(e for e in events if e["event"] == "abort")
+    assert abort["stage_moving"] is False and abort["positions_measured"] == 0
+    lines = (run_dir / "turntable.log").read_text().splitlines()
+    st = next(i for i, ln in enumerate(lines) if ln.endswith("> 1ST\\r\\n"))
+    last_ts = [ln for ln in lines[:st] if "< 1TS" in ln][-1]
+    assert last_ts.endswith("1E\\r\\n")  # HOMING (0x1E) when ST went out
+    assert "NOT REFERENCED" in abort["stage_state"]  # an SMC100 stopped while homing is unreferenced

@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         f"stage-stall={max(2, args.positions // 3)}",
         f"accel-emcy={0.5 * per_pos_s + 3.0:.1f}",  # in position 0's dwell (no EMCY while stopped)
         f"accel-heartbeat-loss={0.85 * total_s:.1f}",
-        f"imu-disconnect={0.45 * total_s:.1f}:1",
+        f"imu-disconnect={0.3 * total_s:.1f}:1",
     ]
     silence_at, bump_at = max(2, args.positions // 2), max(3, (3 * args.positions) // 4)
     injected: dict[str, float] = {}
@@ -111,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
         cfg.validate()
         rss_start = rss_mib()
         try:
-            result = measure(cfg, RunDir(out), settings=SimSettings(**truth), report=False, progress=False,
+            settings = SimSettings(**truth, time_scale=args.time_scale)
+            result = measure(cfg, RunDir(out), settings=settings, report=False, progress=False,
                              seq_kwargs={"on_progress": on_progress})
         except NorthfinderError as exc:
             failed.append(f"the run stopped: {exc}")

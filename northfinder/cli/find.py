@@ -99,6 +99,10 @@ def _check_flags(args: argparse.Namespace) -> None:
         raise InputError(f"--dwell {args.dwell:g}: use a dwell greater than 0 s")
     if args.latitude is not None and not -89.0 <= args.latitude <= 89.0:
         raise InputError(f"--latitude {args.latitude:g}: use −89…89 degrees")
+    if args.fault and args.config:
+        raise InputError(
+            f"--fault {args.fault[0]}: faults are injected by the simulator; use them with --simulate"
+        )
     if args.simulate and not (math.isfinite(args.time_scale) and args.time_scale > 0):
         raise InputError(f"--time-scale {args.time_scale:g}: use a factor greater than 0")
 
