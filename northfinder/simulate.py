@@ -22,6 +22,27 @@ from northfinder.config import BenchConfig
 from northfinder.errors import DeviceError
 
 
+def _arg(value: Any) -> str:
+    """A flag's value as firmware-sim reads it: floats exactly (repr), vectors as X,Y,Z."""
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, tuple | list):
+        return ",".join(repr(float(v)) for v in value)
+    return str(value)
+
+
+def firmware_sim_argv(options: dict[str, Any], faults: Sequence[str] = ()) -> list[str]:
+    """`python -m firmware_sim` with `options` ({flag: value}, in order; None left out) and
+    one `--fault` per fault: the one place every scenario's command line is built."""
+    out = [sys.executable, "-m", "firmware_sim"]
+    for flag, value in options.items():
+        if value is not None:
+            out += [flag, _arg(value)]
+    for fault in faults:
+        out += ["--fault", fault]
+    return out
+
+
 @dataclass
 class SimSettings:
     """The truth and the knobs passed on to firmware-sim (degrees at the edge)."""
@@ -38,30 +59,19 @@ class SimSettings:
 
     def argv(self) -> list[str]:
         """The firmware-sim command line for these settings."""
-        out = [
-            sys.executable,
-            "-m",
-            "firmware_sim",
-            "--heading",
-            repr(float(self.heading_deg)),
-            "--pitch",
-            repr(float(self.pitch_deg)),
-            "--roll",
-            repr(float(self.roll_deg)),
-            "--latitude",
-            repr(float(self.latitude_deg)),
-            "--grade",
-            self.grade,
-            "--seed",
-            str(int(self.seed)),
-            "--time-scale",
-            repr(float(self.time_scale)),
-        ]
-        if self.config:
-            out += ["--config", self.config]
-        for fault in self.faults:
-            out += ["--fault", fault]
-        return out
+        return firmware_sim_argv(
+            {
+                "--heading": float(self.heading_deg),
+                "--pitch": float(self.pitch_deg),
+                "--roll": float(self.roll_deg),
+                "--latitude": float(self.latitude_deg),
+                "--grade": self.grade,
+                "--seed": int(self.seed),
+                "--time-scale": float(self.time_scale),
+                "--config": self.config or None,
+            },
+            self.faults,
+        )
 
     def truth(self) -> dict[str, float]:
         return {

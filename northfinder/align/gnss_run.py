@@ -33,19 +33,20 @@ import re
 import time
 import tomllib
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from northfinder.align import runs
 from northfinder.align.gnss_ins import GnssAlignConfig, GnssAlignResult, GnssSeries, ImuSeries, align_gnss
+from northfinder.align.runs import TruthLog, read_truth_log
 from northfinder.align.small_angle import align_gnss_small_angle
 from northfinder.codecs.kvh import KvhDecoder
 from northfinder.codecs.nmea import GnssFix, LocalEnu, checksum, fixes_to_arrays
 from northfinder.constants import wrap_deg_180
 from northfinder.errors import ConfigError, InputError
-from northfinder.rundir import CONFIG, EVENTS, IMU_RAW, RESULT, RunDir, jsonable
+from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
 
 KIND = "align-gnss"
 SCHEMA = "northfinder.align-gnss/1"
@@ -292,104 +293,6 @@ def host_offsets(
 
 
 # ---------------------------------------------------------------------------------------------
-# The simulator's truth log (JSON lines, docs/simulator.md)
-# ---------------------------------------------------------------------------------------------
-@dataclass
-class TruthLog:
-    """What northfinder needs from firmware-sim's truth log (docs/simulator.md): the device time of
-    this client's first IMU sample, the ENU origin, the antenna lever arm, and truth against time."""
-
-    header: dict[str, Any]
-    imu_k0: int | None
-    """Absolute sample number k (1, 2, … since power-on) of the first frame this client received."""
-    imu_rate_hz: float | None
-    grid_events: int
-    """imu_grid events after the connect (a rate change or configuration mode moved the k ↔ time map)."""
-    t_s: np.ndarray
-    heading_deg: np.ndarray  # unwrapped
-    pitch_deg: np.ndarray
-    roll_deg: np.ndarray
-    pos_enu_m: np.ndarray  # of the IMU, about `origin`
-    lever_arm_m: list[float] | None
-    origin: tuple[float, float, float] | None
-
-    @property
-    def imu_t0_s(self) -> float | None:
-        """Device time at which the first received sample's interval starts: sample k covers
-        [(k − 1)/rate, k/rate] (docs/simulator.md)."""
-        if self.imu_k0 is None or not self.imu_rate_hz:
-            return None
-        return (self.imu_k0 - 1) / self.imu_rate_hz
-
-    def at(self, t_s: float | np.ndarray, what: str) -> np.ndarray:
-        """Linear interpolation of a truth column at device time(s)."""
-        col = getattr(self, what)
-        t = np.asarray(t_s, dtype=float)
-        if col.ndim == 1:
-            return np.interp(t, self.t_s, col)
-        return np.stack([np.interp(t, self.t_s, col[:, j]) for j in range(col.shape[1])], axis=-1)
-
-    def heading_at(self, t_s) -> np.ndarray:
-        return np.mod(self.at(t_s, "heading_deg"), 360.0)
-
-
-def read_truth_log(path: Path) -> TruthLog:
-    """Parse firmware-sim's truth log (JSON lines: a header, `truth` rows, `event`s); a torn last
-    line is ignored. InputError naming the file if it is missing or has no truth rows."""
-    header: dict[str, Any] = {}
-    k0 = None
-    grid = 0
-    rows: list[tuple] = []
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise InputError(f"{path}: the simulator's truth log is missing") from None
-    for line in lines:
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        kind = rec.get("type") if isinstance(rec, dict) else None
-        if kind == "truth":
-            rows.append(
-                (
-                    rec["t_device_s"],
-                    rec["heading_deg"],
-                    rec["pitch_deg"],
-                    rec["roll_deg"],
-                    rec["imu_pos_enu_m"],
-                )
-            )
-        elif kind == "header" and not header:
-            header = rec
-        elif kind == "event" and rec.get("event") == "imu_connect" and k0 is None:
-            k0 = int(rec["k0"])
-        elif kind == "event" and rec.get("event") == "imu_grid" and k0 is not None:
-            grid += 1
-    if not rows:
-        raise InputError(f"{path}: the truth log has no truth rows")
-    rows.sort(key=lambda r: r[0])
-    origin = header.get("enu_origin")
-    la = (header.get("gnss") or {}).get("lever_arm_b_m")
-    rate = (header.get("imu") or {}).get("rate_hz")
-    return TruthLog(
-        header=header,
-        imu_k0=k0,
-        imu_rate_hz=float(rate) if rate is not None else None,
-        grid_events=grid,
-        t_s=np.array([r[0] for r in rows], dtype=float),
-        heading_deg=np.rad2deg(np.unwrap(np.deg2rad([r[1] for r in rows]))),
-        pitch_deg=np.array([r[2] for r in rows], dtype=float),
-        roll_deg=np.array([r[3] for r in rows], dtype=float),
-        pos_enu_m=np.array([r[4] for r in rows], dtype=float).reshape(-1, 3),
-        lever_arm_m=[float(v) for v in la] if la is not None else None,
-        origin=(float(origin["latitude_deg"]), float(origin["longitude_deg"]), float(origin["height_m"]))
-        if origin
-        else None,
-    )
-
-
-# ---------------------------------------------------------------------------------------------
 # Result assembly: the one function live and replay call
 # ---------------------------------------------------------------------------------------------
 def gnss_series(fixes: list[GnssFix], utc_ref_s: float, pos_std_m, vel_std_m_s: float) -> GnssSeries:
@@ -594,33 +497,11 @@ def compute_gnss_result(
 def window_from_logs(rd: RunDir, start: dict[str, Any], end: dict[str, Any]) -> tuple[Any, list[GnssFix]]:
     """The IMU samples and the fixes of the window, decoded from imu.raw and gnss.nmea alone."""
     from northfinder.drivers.gnss import decode_nmea_log
-    from northfinder.drivers.imu import decode_imu_stream
 
-    imu_cfg = start["imu"]
-    raw = rd.file(IMU_RAW).read_bytes() if rd.file(IMU_RAW).exists() else b""
-    block, _ = decode_imu_stream(raw, imu_cfg["rate_hz"], imu_cfg["rot_format"], imu_cfg["rot_units"])
-    block = _select(block, int(end["imu"]["first_index"]), int(end["imu"]["last_index"]))
+    block = runs.imu_window_from_raw(rd, start, end)
     nmea = rd.file(GNSS_NMEA).read_bytes() if rd.file(GNSS_NMEA).exists() else b""
     fixes, _ = decode_nmea_log(nmea)
     return block, fixes[: int(end["gnss"]["fixes"])]
-
-
-def _select(block: Any, first_index: int, last_index: int) -> Any:
-    """The samples of an ImuBlock with first_index ≤ index ≤ last_index (what the live run read)."""
-    from northfinder.drivers.imu import ImuBlock
-
-    sel = (block.sample_index >= first_index) & (block.sample_index <= last_index)
-    idx = block.sample_index[sel]
-    lost = int(idx[-1] - idx[0] + 1 - len(idx)) if len(idx) else 0
-    return ImuBlock(
-        idx,
-        block.gyro_rad_s[sel],
-        block.accel_g[sel],
-        block.status[sel],
-        block.temperature_c[sel],
-        lost,
-        block.rate_hz,
-    )
 
 
 def time_alignment(
@@ -647,10 +528,7 @@ def time_alignment(
         host = None
     if truth is not None and truth.imu_t0_s is not None:
         if truth.grid_events:
-            raise InputError(
-                f"{rd.path}: the simulated IMU's sample grid moved after this client connected "
-                "(imu_grid event in the truth log); its samples no longer map to device time"
-            )
+            raise runs.grid_moved(rd)
         if truth.imu_rate_hz != rate:
             raise InputError(
                 f"{rd.path}: the truth log's IMU rate {truth.imu_rate_hz:g} Hz is not the run's {rate:g} Hz"
@@ -695,13 +573,7 @@ def replay_gnss_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
     Returns (result, complete); bit-identical to the live result.json for the same run.
     """
     rd = RunDir(run_dir, create=False)
-    events = rd.events()
-    start = next((e for e in events if e.get("event") == "start"), None)
-    if start is None or start.get("kind") != KIND:
-        raise InputError(
-            f"{rd.path}: not an `align --mode gnss` run ({EVENTS} has no start event of kind {KIND})"
-        )
-    end = next((e for e in events if e.get("event") == "end"), None)
+    start, end = runs.run_events(rd, KIND, "gnss")
     if end is None:
         raise InputError(
             f"{rd.path}: the run has no end event (it was killed before saving its window); "
@@ -772,15 +644,9 @@ def write_gnss_report(result: dict[str, Any], hist: dict[str, Any], path: str | 
 def save_result(
     rd: RunDir, result: dict[str, Any], hist: dict[str, Any], json_path: str | None, report: bool = True
 ) -> None:
-    rd.write_json(RESULT, result)
-    if json_path:
-        RunDir(Path(json_path).parent).write_json(Path(json_path).name, result)
+    runs.write_result(rd, result, json_path)
     if report:
         write_gnss_report(result, hist, rd.report_path)
-
-
-def now_utc() -> str:
-    return datetime.now(UTC).isoformat()
 
 
 __all__ = [

@@ -17,22 +17,20 @@ from __future__ import annotations
 
 import contextlib
 import math
-import signal
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from northfinder.align import gnss_run as gr
-from northfinder.errors import DeviceError, InputError, RunAborted
+from northfinder.align import runs
+from northfinder.errors import DeviceError
 from northfinder.rundir import CONFIG, RunDir
 from northfinder.sequencer import StopFlag
-from northfinder.simulate import SimulatorProcess
+from northfinder.simulate import SimulatorProcess, firmware_sim_argv
 
 SIM_IMU_RATE_HZ = 250
 SIM_DEFAULT_TIME_SCALE = 20.0
@@ -56,32 +54,20 @@ class VehicleSim:
     truth_log: str | None = None
 
     def argv(self) -> list[str]:
-        out = [
-            sys.executable,
-            "-m",
-            "firmware_sim",
-            "--scenario",
-            "vehicle",
-            "--lever-arm",
-            ",".join(repr(float(v)) for v in self.lever_arm_m),
-            "--imu-rate",
-            str(int(self.imu_rate_hz)),
-            "--grade",
-            self.grade,
-            "--seed",
-            str(int(self.seed)),
-            "--time-scale",
-            repr(float(self.time_scale)),
-        ]
-        if self.latitude_deg is not None:
-            out += ["--latitude", repr(float(self.latitude_deg))]
-        if self.heading_deg is not None:
-            out += ["--heading", repr(float(self.heading_deg))]
-        if self.truth_log:
-            out += ["--truth-log", str(self.truth_log)]
-        for fault in self.faults:
-            out += ["--fault", fault]
-        return out
+        return firmware_sim_argv(
+            {
+                "--scenario": "vehicle",
+                "--lever-arm": self.lever_arm_m,
+                "--imu-rate": int(self.imu_rate_hz),
+                "--grade": self.grade,
+                "--seed": int(self.seed),
+                "--time-scale": float(self.time_scale),
+                "--latitude": None if self.latitude_deg is None else float(self.latitude_deg),
+                "--heading": None if self.heading_deg is None else float(self.heading_deg),
+                "--truth-log": self.truth_log or None,
+            },
+            self.faults,
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -109,19 +95,6 @@ def utc_seconds(iso: str) -> float:
     return datetime.fromisoformat(iso.replace("Z", "+00:00")).astimezone(UTC).timestamp()
 
 
-@contextlib.contextmanager
-def _opened(device: str, port: str, factory: Any) -> Iterator[Any]:
-    """Enter a driver; an OS/serial failure becomes one DeviceError line naming the port."""
-    try:
-        obj = factory()
-    except OSError as exc:  # serial.SerialException is an OSError
-        raise DeviceError(device, port, f"cannot open it ({exc}); check the port") from None
-    try:
-        yield obj
-    finally:
-        obj.close()
-
-
 def _stamped(device: str, port: str, baudrate: int, raw: Path, stamps: Path) -> gr.StampedTransport:
     from northfinder.transport import SerialTransport
 
@@ -130,39 +103,15 @@ def _stamped(device: str, port: str, baudrate: int, raw: Path, stamps: Path) -> 
     )
 
 
-class _View:
-    """rich progress: device time of the window, fixes, satellites, speed, stream counters."""
-
-    def __init__(self, duration_s: float, enabled: bool):
-        from rich.console import Console
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-        self.progress = Progress(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            TextColumn("{task.fields[info]}"),
-            TimeElapsedColumn(),
-            console=Console(stderr=True),
-            disable=not enabled,
-        )
-        self.task = self.progress.add_task("device time", total=duration_s, info="waiting for data")
-
-    def update(self, done_s: float, total_s: float, fix: Any, gnss_stats: Any, imu_stats: Any) -> None:
-        speed = f"{fix.speed_m_s:5.1f} m/s" if fix is not None and fix.speed_m_s is not None else "  —  "
-        sats = fix.num_sv if fix is not None else 0
-        info = (
-            f"{done_s:6.1f}/{total_s:g} s  fixes {gnss_stats.fixes} ({sats} SV, {speed})  "
-            f"NMEA bad {gnss_stats.bad_checksum}+{gnss_stats.truncated} no-fix {gnss_stats.no_fix}  "
-            f"IMU lost {imu_stats.lost_samples} bad CRC {imu_stats.bad_crc}"
-        )
-        self.progress.update(self.task, completed=done_s, info=info)
-
-    def __enter__(self) -> _View:
-        self.progress.start()
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.progress.stop()
+def _progress_info(done_s: float, total_s: float, fix: Any, gnss_stats: Any, imu_stats: Any) -> str:
+    """The progress bar's text: device time of the window, fixes, satellites, speed, stream counters."""
+    speed = f"{fix.speed_m_s:5.1f} m/s" if fix is not None and fix.speed_m_s is not None else "  —  "
+    sats = fix.num_sv if fix is not None else 0
+    return (
+        f"{done_s:6.1f}/{total_s:g} s  fixes {gnss_stats.fixes} ({sats} SV, {speed})  "
+        f"NMEA bad {gnss_stats.bad_checksum}+{gnss_stats.truncated} no-fix {gnss_stats.no_fix}  "
+        f"IMU lost {imu_stats.lost_samples} bad CRC {imu_stats.bad_crc}"
+    )
 
 
 @dataclass
@@ -207,7 +156,7 @@ def acquire(
     fixes: list[Any] = []
     with stop.installed(), contextlib.ExitStack() as stack:
         imu = stack.enter_context(
-            _opened(
+            runs.opened(
                 "imu",
                 imu_port,
                 lambda: Imu(
@@ -223,7 +172,7 @@ def acquire(
         if configure_imu:
             imu.configure()  # read the rate and gyro format back: the decoder must know them
         gnss = stack.enter_context(
-            _opened(
+            runs.opened(
                 "gnss",
                 gnss_port,
                 lambda: Gnss(
@@ -235,62 +184,31 @@ def acquire(
                 ),
             )
         )
-        start = {
-            "event": "start",
-            "kind": gr.KIND,
-            "utc": gr.now_utc(),
-            "duration_s": duration_s,
-            "imu": {
-                "port": imu_port,
-                "rate_hz": imu.rate_hz,
-                "rot_format": imu.rot_format,
-                "rot_units": imu.rot_units,
-            },
-            "gnss": {"port": gnss_port},
-            "filter": filter_settings,
-            "simulate": simulate,
-            "time_scale": time_scale,
-            "gnss_start_utc": gnss_start_utc,
-            "gnss_latency_s": gnss_latency_s,
-        }
+        start = runs.start_event(
+            gr.KIND,
+            duration_s,
+            imu_port,
+            imu,
+            gnss={"port": gnss_port},
+            filter=filter_settings,
+            simulate=simulate,
+            time_scale=time_scale,
+            gnss_start_utc=gnss_start_utc,
+            gnss_latency_s=gnss_latency_s,
+        )
         rd.log_event(start)
         rate = imu.rate_hz
-        n_total = int(round(duration_s * rate))
-        chunk = max(1, int(rate))  # 1 s of device time per read: few wakeups at a large time scale
-        first = last = None
         last_fix = None
-        with _View(duration_s, progress) as view:
-            while not stop:
-                need = n_total if first is None else n_total - (last - first + 1)
-                if need <= 0:
-                    break
-                block = imu.read(min(chunk, need), timeout_s=5.0 + chunk / rate)
-                if first is None:
-                    first = int(block.sample_index[0])
-                over = int(block.sample_index[-1]) - first + 1 - n_total
-                if over > 0:  # a gap at the end overshot the window: keep its samples inside it
-                    keep = block.sample_index <= first + n_total - 1
-                    block = gr._select(
-                        block,
-                        int(block.sample_index[0]),
-                        int(block.sample_index[keep][-1]) if keep.any() else -1,
-                    )
-                if len(block):
-                    blocks.append(block)
-                    last = int(block.sample_index[-1])
+        with runs.DeviceTimeProgress(duration_s, progress) as view:
+            for done_s in runs.read_imu_window(imu, duration_s, stop, blocks):
                 pending = gnss.pending
                 if pending:
                     fixes.extend(gnss.read_fixes(pending, timeout_s=1.0))
                     last_fix = fixes[-1]
-                view.update(
-                    (last - first + 1) / rate if last is not None else 0.0,
-                    duration_s,
-                    last_fix,
-                    gnss.stats,
-                    imu.stats,
-                )
+                view.show(done_s, _progress_info(done_s, duration_s, last_fix, gnss.stats, imu.stats))
             if not stop and gnss_start_utc is not None and blocks:
                 # the fixes up to the window's end (device time = NMEA UTC − gnss_start_utc) are on their way
+                last = int(blocks[-1].sample_index[-1])
                 t_end = utc_seconds(gnss_start_utc) + (last + 1) / rate + 0.5
                 with contextlib.suppress(DeviceError):
                     fixes.extend(gnss.fixes_until(t_end, timeout_s=2.0 + 1.0 / max(time_scale, 1e-3)))
@@ -304,34 +222,17 @@ def acquire(
         rd.log_event(
             {"event": "end", "complete": False, "imu": {"samples": 0}, "gnss": {"fixes": len(fixes)}}
         )
-        raise _abort_or(stop, rd, "no IMU samples were read")
-    from northfinder.drivers.imu import ImuBlock
-
-    block = ImuBlock(
-        np.concatenate([b.sample_index for b in blocks]),
-        np.concatenate([b.gyro_rad_s for b in blocks]),
-        np.concatenate([b.accel_g for b in blocks]),
-        np.concatenate([b.status for b in blocks]),
-        np.concatenate([b.temperature_c for b in blocks]),
-        0,
-        rate,
-    )
-    lost = int(block.sample_index[-1] - block.sample_index[0] + 1 - len(block))
+        raise runs.abort_or(stop, rd, "no IMU samples were read")
+    block = runs.concat_blocks(blocks, rate)
     utc_ref = (
         utc_seconds(gnss_start_utc) if gnss_start_utc else (math.floor(fixes[0].time_s) if fixes else 0.0)
     )
     end = {
         "event": "end",
         "complete": complete,
-        "utc": gr.now_utc(),
+        "utc": runs.now_utc(),
         "utc_ref_s": utc_ref,
-        "imu": {
-            "first_index": int(block.sample_index[0]),
-            "last_index": int(block.sample_index[-1]),
-            "samples": len(block),
-            "lost_samples": lost,
-            "stats": imu_stats.as_dict(),
-        },
+        "imu": runs.imu_end(block, imu_stats.as_dict()),
         "gnss": {"fixes": len(fixes), "stats": gnss_stats.as_dict()},
     }
     rd.log_event(end)
@@ -341,29 +242,12 @@ def acquire(
 def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool = True) -> dict[str, Any]:
     """Align on the window (the function replay uses), save result.json (+ --json) and report.png.
     A window cut short by a signal is aligned if it can be, then RunAborted (exit 130/143)."""
-    complete = not w.stop
-    try:
-        result, hist = gr.result_from_run(rd, w.block, w.fixes, w.start, w.end, complete)
-    except InputError as exc:
-        if complete:
-            raise
-        raise _abort_or(w.stop, rd, str(exc)) from None
-    gr.save_result(rd, result, hist, json_path, report)
-    if not complete:
-        raise _abort_or(w.stop, rd, f"the result of the {result['duration_device_s']:.1f} s read is saved")
-    return result
-
-
-def _abort_or(stop: StopFlag, rd: RunDir, what: str) -> Exception:
-    if not stop:
-        return InputError(what)
-    err = RunAborted(
-        f"run stopped by {signal.Signals(stop.signum).name}; {what}; the data is saved in "
-        f"{rd.path} (northfinder replay {rd.path})"
+    return runs.finish_window(
+        rd,
+        w.stop,
+        lambda complete: gr.result_from_run(rd, w.block, w.fixes, w.start, w.end, complete),
+        lambda result, hist: gr.save_result(rd, result, hist, json_path, report),
     )
-    if stop.signum == signal.SIGTERM:
-        err.exit_code = 143
-    return err
 
 
 def wall_clock() -> float:

@@ -23,16 +23,15 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import signal
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from northfinder.align import runs
 from northfinder.align.coarse import coarse_align
 from northfinder.align.swaying import (
     KVH_GYRO_RANGE_DPS,
@@ -44,10 +43,10 @@ from northfinder.align.swaying import (
     velocity_increments_ib0,
 )
 from northfinder.constants import DEG, OMEGA_EARTH_RAD_S, STANDARD_GRAVITY_M_S2, wrap_deg_180
-from northfinder.errors import ConfigError, DeviceError, InputError, RunAborted
-from northfinder.rundir import CONFIG, EVENTS, IMU_RAW, RESULT, RunDir, jsonable
+from northfinder.errors import ConfigError, DeviceError, InputError
+from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
 from northfinder.sequencer import StopFlag
-from northfinder.simulate import SimulatorProcess
+from northfinder.simulate import SimulatorProcess, firmware_sim_argv
 
 KIND = "align-swaying"
 SCHEMA = "northfinder.align-swaying/1"
@@ -140,34 +139,21 @@ class ShipSim:
     """A firmware-sim TOML for the keys without a flag (e.g. imu_variant); the flags win."""
 
     def argv(self) -> list[str]:
-        out = [
-            sys.executable,
-            "-m",
-            "firmware_sim",
-            "--scenario",
-            "ship",
-            "--sway",
-            self.sway,
-            "--lever-arm",
-            ",".join(repr(float(v)) for v in self.lever_arm_m),
-            "--heading",
-            repr(float(self.heading_deg)),
-            "--latitude",
-            repr(float(self.latitude_deg)),
-            "--grade",
-            self.grade,
-            "--seed",
-            str(int(self.seed)),
-            "--time-scale",
-            repr(float(self.time_scale)),
-        ]
-        if self.truth_log:
-            out += ["--truth-log", str(self.truth_log)]
-        if self.config:
-            out += ["--config", str(self.config)]
-        for fault in self.faults:
-            out += ["--fault", fault]
-        return out
+        return firmware_sim_argv(
+            {
+                "--scenario": "ship",
+                "--sway": self.sway,
+                "--lever-arm": self.lever_arm_m,
+                "--heading": float(self.heading_deg),
+                "--latitude": float(self.latitude_deg),
+                "--grade": self.grade,
+                "--seed": int(self.seed),
+                "--time-scale": float(self.time_scale),
+                "--truth-log": self.truth_log or None,
+                "--config": self.config or None,
+            },
+            self.faults,
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -241,28 +227,6 @@ class Window:
     stop: StopFlag
 
 
-def now_utc() -> str:
-    return datetime.now(UTC).isoformat()
-
-
-def _select(block: Any, first_index: int, last_index: int) -> Any:
-    """The samples of an ImuBlock with first_index ≤ index ≤ last_index."""
-    from northfinder.drivers.imu import ImuBlock
-
-    sel = (block.sample_index >= first_index) & (block.sample_index <= last_index)
-    idx = block.sample_index[sel]
-    lost = int(idx[-1] - idx[0] + 1 - len(idx)) if len(idx) else 0
-    return ImuBlock(
-        idx,
-        block.gyro_rad_s[sel],
-        block.accel_g[sel],
-        block.status[sel],
-        block.temperature_c[sel],
-        lost,
-        block.rate_hz,
-    )
-
-
 def check_stream(block: Any, port: str) -> None:
     """Refuse early what the alignment cannot use: no valid accelerometers (KVH status bits 4–6,
     docs/PROTOCOLS.md §2, or all-zero fields) and gyros at the end of their range."""
@@ -282,38 +246,6 @@ def check_stream(block: Any, port: str) -> None:
         )
 
 
-class _View:
-    """rich progress bar in device time, with the stream counters."""
-
-    def __init__(self, duration_s: float, enabled: bool):
-        from rich.console import Console
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-        self.progress = Progress(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            TextColumn("{task.fields[info]}"),
-            TimeElapsedColumn(),
-            console=Console(stderr=True),
-            disable=not enabled,
-        )
-        self.task = self.progress.add_task("device time", total=duration_s, info="waiting for data")
-
-    def update(self, done_s: float, total_s: float, stats: Any) -> None:
-        info = (
-            f"{done_s:6.1f}/{total_s:g} s  lost {stats.lost_samples}  bad CRC {stats.bad_crc}  "
-            f"resyncs {stats.resyncs}"
-        )
-        self.progress.update(self.task, completed=done_s, info=info)
-
-    def __enter__(self) -> _View:
-        self.progress.start()
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.progress.stop()
-
-
 def acquire(
     rd: RunDir,
     *,
@@ -330,147 +262,47 @@ def acquire(
     go to imu.raw as they arrive, the window's index range to events.jsonl. A signal ends the
     reading early (`Window.stop` says which). `settings`: what the estimator needs (latitude,
     method, sway period, simulate) — stored in the start event so replay finds it."""
-    from northfinder.drivers.imu import Imu, ImuBlock
+    from northfinder.drivers.imu import Imu
 
     rd.write_json(CONFIG, {"kind": KIND, "argv": sys.argv, **settings, **(config_extra or {})})
     stop = StopFlag()
     blocks: list[Any] = []
-    first = last = None
     with stop.installed():
-        try:
-            imu = Imu(imu_port, baudrate=baudrate, raw_log=rd.imu_raw_path, rate_hz=rate_hz, timeout_s=5.0)
-        except OSError as exc:  # serial.SerialException is an OSError
-            raise DeviceError("imu", imu_port, f"cannot open it ({exc}); check the port") from None
-        with imu:
+        with runs.opened(
+            "imu",
+            imu_port,
+            lambda: Imu(imu_port, baudrate=baudrate, raw_log=rd.imu_raw_path, rate_hz=rate_hz, timeout_s=5.0),
+        ) as imu:
             if configure_imu:
                 imu.configure()  # read rate and gyro format back: the decoder must know them
-            start = {
-                "event": "start",
-                "kind": KIND,
-                "utc": now_utc(),
-                "duration_s": duration_s,
-                "imu": {
-                    "port": imu_port,
-                    "rate_hz": imu.rate_hz,
-                    "rot_format": imu.rot_format,
-                    "rot_units": imu.rot_units,
-                },
-                **settings,
-            }
+            start = runs.start_event(KIND, duration_s, imu_port, imu, **settings)
             rd.log_event(start)
+            with runs.DeviceTimeProgress(duration_s, progress) as view:
+                for done_s in runs.read_imu_window(
+                    imu, duration_s, stop, blocks, check=lambda b: check_stream(b, imu_port)
+                ):
+                    st = imu.stats
+                    view.show(
+                        done_s,
+                        f"{done_s:6.1f}/{duration_s:g} s  lost {st.lost_samples}  bad CRC {st.bad_crc}  "
+                        f"resyncs {st.resyncs}",
+                    )
             rate = imu.rate_hz
-            n_total = int(round(duration_s * rate))
-            chunk = max(1, int(rate))  # 1 s of device time per read: few wakeups at a large time scale
-            with _View(duration_s, progress) as view:
-                while not stop:
-                    need = n_total if first is None else n_total - (last - first + 1)
-                    if need <= 0:
-                        break
-                    block = imu.read(min(chunk, need), timeout_s=5.0 + chunk / rate)
-                    check_stream(block, imu_port)
-                    if first is None:
-                        first = int(block.sample_index[0])
-                    if int(block.sample_index[-1]) - first + 1 > n_total:  # a gap overshot the window
-                        block = _select(block, first, first + n_total - 1)
-                    if len(block):
-                        blocks.append(block)
-                        last = int(block.sample_index[-1])
-                    view.update((last - first + 1) / rate if last is not None else 0.0, duration_s, imu.stats)
             stats = imu.stats.as_dict()
     # port closed: imu.raw is complete on disk
     complete = not stop
     if not blocks:
         rd.log_event({"event": "end", "complete": False, "imu": {"samples": 0}})
-        raise _abort_or(stop, rd, "no IMU samples were read")
-    block = ImuBlock(
-        np.concatenate([b.sample_index for b in blocks]),
-        np.concatenate([b.gyro_rad_s for b in blocks]),
-        np.concatenate([b.accel_g for b in blocks]),
-        np.concatenate([b.status for b in blocks]),
-        np.concatenate([b.temperature_c for b in blocks]),
-        0,
-        rate,
-    )
-    lost = int(block.sample_index[-1] - block.sample_index[0] + 1 - len(block))
-    end = {
-        "event": "end",
-        "complete": complete,
-        "utc": now_utc(),
-        "imu": {
-            "first_index": int(block.sample_index[0]),
-            "last_index": int(block.sample_index[-1]),
-            "samples": len(block),
-            "lost_samples": lost,
-            "stats": stats,
-        },
-    }
+        raise runs.abort_or(stop, rd, "no IMU samples were read")
+    block = runs.concat_blocks(blocks, rate)
+    end = {"event": "end", "complete": complete, "utc": runs.now_utc(), "imu": runs.imu_end(block, stats)}
     rd.log_event(end)
     return Window(block, start, end, stop)
-
-
-def _abort_or(stop: StopFlag, rd: RunDir, what: str) -> Exception:
-    if not stop:
-        return InputError(what)
-    err = RunAborted(
-        f"run stopped by {signal.Signals(stop.signum).name}; {what}; the data is saved in "
-        f"{rd.path} (northfinder replay {rd.path})"
-    )
-    if stop.signum == signal.SIGTERM:
-        err.exit_code = 143
-    return err
 
 
 # ---------------------------------------------------------------------------------------------
 # The simulator's truth log (docs/simulator.md)
 # ---------------------------------------------------------------------------------------------
-@dataclass
-class ShipTruth:
-    """Truth rows (heading unwrapped) and the IMU client's connect anchor."""
-
-    t_s: np.ndarray
-    heading_deg: np.ndarray
-    pitch_deg: np.ndarray
-    roll_deg: np.ndarray
-    connect: dict[str, Any] | None
-    grid_events: int
-    header: dict[str, Any]
-
-    def at(self, t_s: float, what: str) -> float:
-        return float(np.interp(t_s, self.t_s, getattr(self, what)))
-
-
-def read_truth_log(path: Path) -> ShipTruth:
-    """Parse firmware-sim's truth log; a torn last line is ignored. InputError naming the file."""
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise InputError(f"{path}: the simulator's truth log is missing") from None
-    header: dict[str, Any] = {}
-    rows: list[tuple[float, float, float, float]] = []
-    connect = None
-    grid = 0
-    for line in lines:
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        kind = rec.get("type")
-        if kind == "truth":
-            rows.append((rec["t_device_s"], rec["heading_deg"], rec["pitch_deg"], rec["roll_deg"]))
-        elif kind == "header" and not header:
-            header = rec
-        elif kind == "event" and rec.get("event") == "imu_connect" and connect is None:
-            connect = rec
-        elif kind == "event" and rec.get("event") == "imu_grid" and connect is not None:
-            grid += 1
-    if not rows:
-        raise InputError(f"{path}: the truth log has no truth rows")
-    arr = np.array(sorted(rows), dtype=float)
-    return ShipTruth(
-        arr[:, 0], np.rad2deg(np.unwrap(np.deg2rad(arr[:, 1]))), arr[:, 2], arr[:, 3], connect, grid, header
-    )
-
-
 def first_sequence(raw: bytes) -> int:
     """Sequence number of the first format-A frame decoded from a raw IMU log."""
     from northfinder.codecs.kvh import KvhDecoder
@@ -484,7 +316,7 @@ def first_sequence(raw: bytes) -> int:
 def truth_at_end(rd: RunDir, start: dict[str, Any], first_index: int, last_index: int) -> dict[str, Any]:
     """The ship's attitude at the end of the window's last sample (and at its start), from the truth
     log; the device time comes from the imu_connect anchor and the first frame's sequence number."""
-    truth = read_truth_log(rd.file(TRUTH_LOG))
+    truth = runs.read_truth_log(rd.file(TRUTH_LOG))
     rate = float(start["imu"]["rate_hz"])
     c = truth.connect
     if c is None:
@@ -492,10 +324,7 @@ def truth_at_end(rd: RunDir, start: dict[str, Any], first_index: int, last_index
             f"{rd.path}: the truth log has no imu_connect event; cannot place the samples in time"
         )
     if truth.grid_events:
-        raise InputError(
-            f"{rd.path}: the simulated IMU's sample grid moved after this client connected "
-            "(imu_grid event in the truth log); its samples no longer map to device time"
-        )
+        raise runs.grid_moved(rd)
     if float(c["rate_hz"]) != rate:
         raise InputError(
             f"{rd.path}: the truth log's IMU rate {c['rate_hz']:g} Hz is not the run's {rate:g} Hz"
@@ -511,10 +340,10 @@ def truth_at_end(rd: RunDir, start: dict[str, Any], first_index: int, last_index
             f"at {t_end:.3f} s of device time"
         )
     return {
-        "heading_deg": truth.at(t_end, "heading_deg") % 360.0,
-        "pitch_deg": truth.at(t_end, "pitch_deg"),
-        "roll_deg": truth.at(t_end, "roll_deg"),
-        "heading_at_start_deg": truth.at(t_start, "heading_deg") % 360.0,
+        "heading_deg": float(truth.heading_at(t_end)),
+        "pitch_deg": float(truth.at(t_end, "pitch_deg")),
+        "roll_deg": float(truth.at(t_end, "roll_deg")),
+        "heading_at_start_deg": float(truth.heading_at(t_start)),
         "t_device_s": t_end,
         "t_start_device_s": t_start,
         "time_alignment": {
@@ -612,24 +441,13 @@ def replay_swaying_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
 
     Returns (result, complete); bit-identical to the live result.json for the same run.
     """
-    from northfinder.drivers.imu import decode_imu_stream
-
     rd = RunDir(run_dir, create=False)
-    events = rd.events()
-    start = next((e for e in events if e.get("event") == "start"), None)
-    if start is None or start.get("kind") != KIND:
-        raise InputError(
-            f"{rd.path}: not an `align --mode swaying` run ({EVENTS} has no start event of kind {KIND})"
-        )
-    end = next((e for e in events if e.get("event") == "end"), None)
+    start, end = runs.run_events(rd, KIND, "swaying")
     if end is None or not end["imu"].get("samples"):
         raise InputError(
             f"{rd.path}: the run has no window of samples (killed before it saved one); nothing to recompute"
         )
-    imu_cfg = start["imu"]
-    raw = rd.file(IMU_RAW).read_bytes() if rd.file(IMU_RAW).exists() else b""
-    block, _ = decode_imu_stream(raw, imu_cfg["rate_hz"], imu_cfg["rot_format"], imu_cfg["rot_units"])
-    block = _select(block, int(end["imu"]["first_index"]), int(end["imu"]["last_index"]))
+    block = runs.imu_window_from_raw(rd, start, end)
     complete = bool(end.get("complete"))
     result, _ = result_from_run(rd, block, start, end, complete)
     return result, complete
@@ -726,24 +544,18 @@ def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], p
 def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool = True) -> dict[str, Any]:
     """Align on the window (the function replay uses), save result.json (+ --json) and report.png.
     A window cut short by a signal is aligned if it is long enough, then RunAborted (exit 130/143)."""
-    complete = not w.stop
-    try:
-        result, sol = result_from_run(rd, w.block, w.start, w.end, complete)
-    except InputError as exc:
-        if complete:
-            raise
-        raise _abort_or(w.stop, rd, str(exc)) from None
-    rd.write_json(RESULT, result)
-    if json_path:
-        RunDir(Path(json_path).parent).write_json(Path(json_path).name, result)
-    if report:
-        with contextlib.suppress(ValueError):  # a window too short for one residual point: no plot
-            write_swaying_report(
-                result, cone_residuals(w.block, sol, float(w.start["max_sway_period_s"])), rd.report_path
-            )
-    if not complete:
-        raise _abort_or(w.stop, rd, f"the result of the {result['duration_device_s']:.1f} s read is saved")
-    return result
+
+    def save(result: dict[str, Any], sol: Any) -> None:
+        runs.write_result(rd, result, json_path)
+        if report:
+            with contextlib.suppress(ValueError):  # a window too short for one residual point: no plot
+                write_swaying_report(
+                    result, cone_residuals(w.block, sol, float(w.start["max_sway_period_s"])), rd.report_path
+                )
+
+    return runs.finish_window(
+        rd, w.stop, lambda complete: result_from_run(rd, w.block, w.start, w.end, complete), save
+    )
 
 
 __all__ = [
