@@ -13,12 +13,12 @@ import argparse
 import math
 import sys
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from northfinder.align import gnss_run as gr
 from northfinder.align import gnss_run_live as live
+from northfinder.align import runs
 from northfinder.errors import InputError
 from northfinder.rundir import RunDir
 
@@ -27,15 +27,9 @@ MIN_DURATION_S = 10.0
 UNKNOWN_LEVER_ARM_STD_M = 1.0
 
 
-def _add(parser: argparse.ArgumentParser, flag: str, **kwargs: Any) -> None:
-    """Add a flag unless another align mode already did (`--heading`, `--latitude` are shared)."""
-    if flag not in parser._option_string_actions:
-        parser.add_argument(flag, **kwargs)
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The gnss mode's own flags on the `align` parser."""
-    _add(
+    runs.add_flag(
         parser,
         "--heading-error",
         type=float,
@@ -43,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DEG",
         help="gnss, simulated: start the filter at the truth heading + DEG (default: heading unknown)",
     )
-    _add(
+    runs.add_flag(
         parser,
         "--lever-arm",
         default=None,
@@ -51,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="gnss: antenna position in IMU axes [m] (simulated: the truth given to firmware-sim; "
         "hardware: the tape-measured prior, overrides [gnss] lever_arm_m)",
     )
-    _add(
+    runs.add_flag(
         parser,
         "--initial-heading",
         type=float,
@@ -59,8 +53,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DEG",
         help="gnss, hardware: a rough heading to start from (default: unknown, any value works)",
     )
-    _add(parser, "--heading", type=float, default=None, metavar="DEG", help="simulated initial heading")
-    _add(parser, "--latitude", type=float, default=None, metavar="DEG", help="simulated site latitude")
+    runs.add_flag(
+        parser, "--heading", type=float, default=None, metavar="DEG", help="simulated initial heading"
+    )
+    runs.add_flag(
+        parser, "--latitude", type=float, default=None, metavar="DEG", help="simulated site latitude"
+    )
 
 
 def parse_lever_arm(text: str | None) -> tuple[float, float, float] | None:
@@ -109,7 +107,7 @@ def _check(args: argparse.Namespace) -> float:
 
 
 def default_out() -> Path:
-    return Path("runs") / datetime.now(UTC).strftime("align-gnss-%Y%m%dT%H%M%SZ")
+    return runs.default_out(gr.KIND)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -153,8 +151,6 @@ def run(args: argparse.Namespace) -> int:
                 config_extra={"endpoints": endpoints},
             )
         # the simulator has stopped (its truth log is complete) before the filters take the CPU
-        t_read = time.monotonic()
-        result = live.finish(rd, window, json_path=args.json)
     else:
         bench = gr.load_bench(args.config)
         g = bench.gnss
@@ -183,8 +179,8 @@ def run(args: argparse.Namespace) -> int:
             gnss_latency_s=g.latency_s,
             config_extra={"bench": {"imu": bench.imu.__dict__, "gnss": g.__dict__, "source": bench.source}},
         )
-        t_read = time.monotonic()
-        result = live.finish(rd, window, json_path=args.json)
+    t_read = time.monotonic()
+    result = live.finish(rd, window, json_path=args.json)
     print_summary(result, run_dir=rd.path)
     t_end = time.monotonic()
     print(
@@ -201,18 +197,10 @@ def _f(v: Any, fmt: str, none: str = "—") -> str:
 
 def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
     """The rich summary: heading ± σ, convergence, lever arm, both filters, truth and errors, counters."""
-    from rich.console import Console
     from rich.table import Table
 
-    if console is None:
-        console = Console()
-        if not console.is_terminal:
-            console = Console(width=max(console.width, 132))
-    head = Table(title="northfinder align --mode gnss", show_header=False, box=None)
-    head.add_row(
-        "heading",
-        f"[bold]{result['heading_deg']:.4f}° ± {result['heading_std_deg']:.4f}°[/] (1σ, {result['method']})",
-    )
+    console = runs.summary_console(console, 132)
+    head = runs.summary_head("northfinder align --mode gnss", result)
     head.add_row("converged after", f"{_f(result['converged_after_s'], '.1f')} s (1σ < 1° from then on)")
     la, las = result["lever_arm_m"], result["lever_arm_std_m"]
     head.add_row(
@@ -232,21 +220,15 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
     head.add_row("time alignment", f"{ta['method']}{extra}")
     if "truth" in result:
         tr = result["truth"]
-        ratio = (
-            abs(result["error_deg"]) / result["heading_std_deg"] if result["heading_std_deg"] else math.inf
+        runs.add_error_rows(
+            head, result, f"heading {tr['heading_deg']:.4f}° (at the start {tr['heading_at_start_deg']:.4f}°)"
         )
-        head.add_row(
-            "truth", f"heading {tr['heading_deg']:.4f}° (at the start {tr['heading_at_start_deg']:.4f}°)"
-        )
-        head.add_row("error", f"[bold]{result['error_deg']:+.4f}°[/] ({ratio:.2f} σ)")
         head.add_row(
             "position error",
             f"{_f(result.get('position_error_m'), '.2f')} m; lever arm off by "
             f"{_f(result.get('lever_arm_error_m'), '.3f')} m",
         )
-    if not result.get("complete", True):
-        head.add_row("[red]INCOMPLETE[/]", "stopped before the end of the window")
-    console.print(head)
+    runs.print_head(console, head, result)
     t = Table(title="both filters on the same data (* = the result)")
     for col in (
         "filter",

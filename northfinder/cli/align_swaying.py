@@ -15,25 +15,19 @@ import math
 import sys
 import threading
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from northfinder.align import runs
 from northfinder.align import swaying_run as sr
 from northfinder.align.swaying import METHODS, minimum_duration_s
 from northfinder.errors import InputError
 from northfinder.rundir import RunDir
 
 
-def _add(parser: argparse.ArgumentParser, flag: str, **kwargs: Any) -> None:
-    """Add a flag unless another align mode already did (`--heading`, `--latitude` are shared)."""
-    if flag not in parser._option_string_actions:
-        parser.add_argument(flag, **kwargs)
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The swaying mode's own flags on the `align` parser."""
-    _add(
+    runs.add_flag(
         parser,
         "--sway",
         default=None,
@@ -41,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f'swaying, simulated: "roll=AMP:PERIOD,pitch=AMP:PERIOD,yaw=AMP:PERIOD,heave=AMP_M:PERIOD" '
         f"(deg or m, s; 'none' = still ship; default the reference {sr.REFERENCE_SWAY!r})",
     )
-    _add(
+    runs.add_flag(
         parser,
         "--sway-period",
         type=float,
@@ -50,7 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"swaying: the longest sway period [s]; the smoothing window is 4 of them and the window "
         f"must hold 8 (default: from --sway when simulated, else {sr.DEFAULT_SWAY_PERIOD_S:g})",
     )
-    _add(
+    runs.add_flag(
         parser,
         "--method",
         choices=METHODS,
@@ -58,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="swaying: cone (constrained fit, default) | cone-gls (plus a noise-weighted step) | circle "
         "(the paper's free space-circle fit)",
     )
-    _add(
+    runs.add_flag(
         parser,
         "--lever-arm",
         default=None,
@@ -66,8 +60,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="swaying, simulated: the IMU's position from the ship's centre of rotation [m] (default "
         "1,2,1.5); gnss: the antenna's position in IMU axes [m]",
     )
-    _add(parser, "--heading", type=float, default=None, metavar="DEG", help="simulated (mean) heading")
-    _add(
+    runs.add_flag(
+        parser, "--heading", type=float, default=None, metavar="DEG", help="simulated (mean) heading"
+    )
+    runs.add_flag(
         parser,
         "--latitude",
         type=float,
@@ -136,7 +132,7 @@ def _check(args: argparse.Namespace) -> tuple[float, dict[str, list[list[float]]
 
 
 def default_out() -> Path:
-    return Path("runs") / datetime.now(UTC).strftime("align-swaying-%Y%m%dT%H%M%SZ")
+    return runs.default_out(sr.KIND)
 
 
 def _preload_matplotlib() -> None:
@@ -208,18 +204,10 @@ def run(args: argparse.Namespace) -> int:
 
 def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
     """The rich summary: heading ± σ, pitch, roll, truth and error, the coarse alignment for contrast."""
-    from rich.console import Console
     from rich.table import Table
 
-    if console is None:
-        console = Console()
-        if not console.is_terminal:
-            console = Console(width=max(console.width, 120))
-    head = Table(title="northfinder align --mode swaying", show_header=False, box=None)
-    head.add_row(
-        "heading",
-        f"[bold]{result['heading_deg']:.4f}° ± {result['heading_std_deg']:.4f}°[/] (1σ, {result['method']})",
-    )
+    console = runs.summary_console(console, 120)
+    head = runs.summary_head("northfinder align --mode swaying", result)
     head.add_row(
         "pitch, roll",
         f"{result['pitch_deg']:+.3f}° ± {result['pitch_std_deg']:.4f}°, "
@@ -233,18 +221,13 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
     )
     if "truth" in result:
         tr = result["truth"]
-        ratio = (
-            abs(result["error_deg"]) / result["heading_std_deg"] if result["heading_std_deg"] else math.inf
-        )
-        head.add_row(
-            "truth",
+        runs.add_error_rows(
+            head,
+            result,
             f"heading {tr['heading_deg']:.4f}°, pitch {tr['pitch_deg']:+.3f}°, roll "
             f"{tr['roll_deg']:+.3f}° at device time {tr['t_device_s']:.3f} s",
         )
-        head.add_row("error", f"[bold]{result['error_deg']:+.4f}°[/] ({ratio:.2f} σ)")
-    if not result.get("complete", True):
-        head.add_row("[red]INCOMPLETE[/]", "stopped before the end of the window")
-    console.print(head)
+    runs.print_head(console, head, result)
     t = Table(title="on the same samples (* = the result)")
     for col in ("method", "heading [deg]", "1σ [deg]", "error [deg]"):
         t.add_column(col, justify="right")
