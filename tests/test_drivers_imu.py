@@ -11,28 +11,13 @@ import tty
 
 import numpy as np
 import pytest
+from helpers import write_all
 
 from northfinder.codecs import kvh
 from northfinder.drivers.imu import Imu, decode_imu_stream
 from northfinder.errors import ConfigError, DeviceError
 
 F = kvh.FRAME_SIZE
-
-
-@pytest.fixture
-def pty_pair():
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    yield master, os.ttyname(slave)
-    os.close(master)
-    os.close(slave)
-
-
-def _write_all(fd: int, data: bytes) -> None:
-    view = memoryview(data)
-    while view:
-        view = view[os.write(fd, view):]
 
 
 def _wait_bytes(imu: Imu, n_bytes: int, timeout_s: float = 5.0) -> None:
@@ -54,7 +39,7 @@ def test_golden_frames_over_a_real_pty(pty_pair, golden):
     master, path = pty_pair
     msgs = [bytes.fromhex(v["hex"]) for v in golden["kvh_format_a"]]
     with Imu(path, wait_for_data=False, rot_format="RATE", rot_units="DEG") as imu:
-        _write_all(master, b"".join(msgs))
+        write_all(master, b"".join(msgs))
         block = imu.read(3, timeout_s=5)
     for k, v in enumerate(golden["kvh_format_a"]):
         assert block.gyro_rad_s[k].tolist() == [g * (np.pi / 180) for g in v["gyro_f32"]]
@@ -81,7 +66,7 @@ def test_perturbed_stream_counts_and_resync_are_exact(pty_pair, tmp_path):
     stream = b"".join(frames)
     raw_log = tmp_path / "imu.raw"
     with Imu(path, wait_for_data=False, raw_log=raw_log) as imu:
-        _write_all(master, stream)
+        write_all(master, stream)
         _wait_bytes(imu, len(stream))
         block = imu.read(n - 5, timeout_s=2)
         stats = imu.stats
@@ -106,7 +91,7 @@ def test_joining_mid_frame_is_one_resync(pty_pair):
     frames, _ = _frames(20)
     stream = b"".join(frames)[17:]
     with Imu(path, wait_for_data=False) as imu:
-        _write_all(master, stream)
+        write_all(master, stream)
         block = imu.read(19, timeout_s=5)
         st = imu.stats
     assert block.sample_index.tolist() == list(range(19))
@@ -123,7 +108,7 @@ class _Repeater:
 
     def _run(self) -> None:
         while not self._stop.wait(0.02):
-            _write_all(self._fd, self._data)
+            write_all(self._fd, self._data)
 
     def __enter__(self) -> _Repeater:
         self._thread.start()
@@ -255,7 +240,7 @@ def test_unplugged_device_is_one_clear_error():
     try:
         frames, _ = _frames(10)
         with Imu(path, wait_for_data=False) as imu:
-            _write_all(master, b"".join(frames))
+            write_all(master, b"".join(frames))
             assert len(imu.read(10, timeout_s=5)) == 10
             os.close(master)  # the far end goes away: reads on the slave fail
             master = None

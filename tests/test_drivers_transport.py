@@ -5,23 +5,12 @@ from __future__ import annotations
 import os
 import socket
 import threading
-import tty
 
 import pytest
 
 from northfinder.drivers.turntable import Turntable
 from northfinder.errors import DeviceError
 from northfinder.transport import SerialTransport
-
-
-@pytest.fixture
-def pty_pair():
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    yield master, os.ttyname(slave)
-    os.close(master)
-    os.close(slave)
 
 
 def test_raw_log_gets_exactly_the_bytes_read(tmp_path):

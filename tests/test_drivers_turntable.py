@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import threading
 import time
-import tty
 
 import numpy as np
 import pytest
@@ -143,16 +142,6 @@ def test_a_reply_that_is_not_an_smc100_reply_names_the_port():
 
 
 # ---------------------------------------------------------------------------- real ptys
-
-
-@pytest.fixture
-def pty_pair():
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    yield master, os.ttyname(slave)
-    os.close(master)
-    os.close(slave)
 
 
 def test_same_port_twice_is_busy_and_named(pty_pair):

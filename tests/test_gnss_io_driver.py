@@ -5,12 +5,11 @@ one-line errors that name the port."""
 
 from __future__ import annotations
 
-import os
 import time
-import tty
 
 import numpy as np
 import pytest
+from helpers import write_all
 
 from firmware_sim.devices.gnss import GnssReceiver
 from firmware_sim.physics.table import TableMotion
@@ -22,22 +21,6 @@ from northfinder.errors import DeviceError
 
 DURATION_S = 60.0
 RATE_HZ = 10
-
-
-@pytest.fixture
-def pty_pair():
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    yield master, os.ttyname(slave)
-    os.close(master)
-    os.close(slave)
-
-
-def _write_all(fd: int, data: bytes) -> None:
-    view = memoryview(data)
-    while view:
-        view = view[os.write(fd, view):]
 
 
 def _run(rx: GnssReceiver, until_s: float, step_s: float = 1.0) -> None:
@@ -90,8 +73,8 @@ def test_golden_sentences_over_a_real_pty(pty_pair, golden):
     master, path = pty_pair
     good = golden["nmea"]["good"]
     with Gnss(path, wait_for_data=False) as gnss:
-        _write_all(master, "".join(golden["nmea"]["bad"]).encode())
-        _write_all(master, "".join(v["sentence"] for v in good).encode())
+        write_all(master, "".join(golden["nmea"]["bad"]).encode())
+        write_all(master, "".join(v["sentence"] for v in good).encode())
         (fix,) = gnss.read_fixes(1, timeout_s=5)
         deadline = time.monotonic() + 5
         while gnss.stats.no_fix == 0 and time.monotonic() < deadline:
@@ -204,7 +187,7 @@ def test_missing_port_is_named():
 
 def test_a_port_without_nmea_is_named(pty_pair):
     master, path = pty_pair
-    _write_all(master, bytes(range(256)) * 4)  # something binary, e.g. an IMU
+    write_all(master, bytes(range(256)) * 4)  # something binary, e.g. an IMU
     with pytest.raises(DeviceError, match="no NMEA sentences on") as exc:
         Gnss(path, timeout_s=0.5)
     msg = str(exc.value)
