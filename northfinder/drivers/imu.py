@@ -136,7 +136,12 @@ class Imu:
         self.stall_s = float(stall_s)
         self._stalls: list[int] = []
         self._mark_stall = False
-        self._t = transport if transport is not None else self._open_transport()
+        try:
+            self._t = transport if transport is not None else self._open_transport()
+        except BaseException:
+            if self._own_raw:
+                self._raw_log.close()
+            raise
         self._decoder = KvhDecoder()
         self._cond = threading.Condition()
         self._pending: list[tuple[np.ndarray, np.ndarray]] = []
