@@ -12,6 +12,16 @@ then on the SAME data, from initial heading errors 10°, 45°, 90°, 135°, 180�
   sincos-no-la      the lever arm ignored (fixed at 0, not estimated) — the paper's fig 8 case
   small-30          the small-angle filter, heading prior 30°, same lever-arm prior as sincos
   small-5           the small-angle filter, heading prior 5° (a conventional fine-alignment setup)
+  small-1           the small-angle filter, heading prior 1° (a good coarse alignment's claim)
+                    — these three feed φ̂ back after every 0.1 s update, like the paper's eq 23
+  small-5-10s       heading prior 5°, attitude fed back only every 10 s (periodic reset)
+  small-5-30s       heading prior 5°, attitude fed back only every 30 s
+  small-5-open      heading prior 5°, open loop on attitude: φ̂ applied only at the end (the
+                    conventional small-misalignment configuration; position, velocity, biases and
+                    lever arm stay closed loop)
+
+A variant "fails" from an initial error when it is not under 1° by the end, or when its final
+error exceeds 3× its claimed 1σ; the tool prints, per variant, the initial errors it fails from.
 
 Writes heading_error.png, position_error.png, lever_arm.png, biases.png, table.md, table.json
 into OUT_DIR and prints the table. Times are seconds after the vehicle starts moving (t = 10 s);
@@ -26,6 +36,7 @@ import json
 import sys
 import time
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -45,13 +56,35 @@ LEVER_MEASURED = (0.7, 1.3, 1.45)
 
 def configs() -> dict[str, tuple]:
     base = GnssAlignConfig(lever_arm_b_m=LEVER_MEASURED, lever_arm_std_m=0.3)
+    prior5 = replace(base, heading_std_deg=5.0)
     return {
         "sincos": (align_gnss, base),
         "sincos-unknown-la": (align_gnss, replace(base, lever_arm_b_m=(0.0, 0.0, 0.0), lever_arm_std_m=1.0)),
         "sincos-no-la": (align_gnss, replace(base, lever_arm_b_m=(0.0, 0.0, 0.0), lever_arm_std_m=0.0)),
         "small-30": (align_gnss_small_angle, replace(base, heading_std_deg=30.0)),
-        "small-5": (align_gnss_small_angle, replace(base, heading_std_deg=5.0)),
+        "small-5": (align_gnss_small_angle, prior5),
+        "small-1": (align_gnss_small_angle, replace(base, heading_std_deg=1.0)),
+        "small-5-10s": (partial(align_gnss_small_angle, attitude_feedback=10.0), prior5),
+        "small-5-30s": (partial(align_gnss_small_angle, attitude_feedback=30.0), prior5),
+        "small-5-open": (partial(align_gnss_small_angle, attitude_feedback="end"), prior5),
     }
+
+
+SMALL_ANGLE_VARIANTS = ("small-30", "small-5", "small-1", "small-5-10s", "small-5-30s", "small-5-open")
+TITLES = {
+    "sincos": "paper: δsin/δcos filter (feedback every update)",
+    "small-30": "small-angle, prior 30°, feedback every update",
+    "small-5": "small-angle, prior 5°, feedback every update",
+    "small-1": "small-angle, prior 1°, feedback every update",
+    "small-5-10s": "small-angle, prior 5°, attitude reset every 10 s",
+    "small-5-30s": "small-angle, prior 5°, attitude reset every 30 s",
+    "small-5-open": "small-angle, prior 5°, open loop (applied at the end)",
+}
+
+
+def fails(row: dict) -> bool:
+    """Not under 1° by the end, or a final error beyond 3× the claimed 1σ."""
+    return row["t_below_1deg_s"] is None or abs(row["final_error_deg"]) > 3.0 * row["final_std_deg"]
 
 
 def time_below(t_s: np.ndarray, err_deg: np.ndarray, thr_deg: float) -> float | None:
@@ -115,33 +148,41 @@ def main(argv=None) -> int:
                 "lever_arm_err_m": round(float(np.linalg.norm(res.lever_arm_m - np.asarray(LEVER_TRUTH))), 3),
                 "wall_s": round(wall, 2),
             })
+            rows[-1]["error_over_std"] = round(abs(float(err[-1])) / res.heading_std_deg, 1)
+            rows[-1]["fails"] = fails(rows[-1])
             curves[(name, e0)] = (h, err, pos_err)
             r = rows[-1]
             print(f"{name:18s} {e0:5.0f}°  t<1°={r['t_below_1deg_s']}  t<0.5°={r['t_below_0p5deg_s']}  "
                   f"err60={r['error_at_60s_deg']}  err100={r['error_at_100s_deg']}  "
                   f"end={r['final_error_deg']}±{r['final_std_deg']}  pos={r['max_pos_err_after_1deg_m']}  "
-                  f"la_err={r['lever_arm_err_m']}"
+                  f"la_err={r['lever_arm_err_m']}  fails={r['fails']}"
                   f"  ({wall:.1f} s wall)", flush=True)
 
+    print("fails (not under 1° at the end, or final |error| > 3σ) from initial errors:")
+    for name in configs():
+        bad = [f"{r['initial_error_deg']:.0f}°" for r in rows if r["filter"] == name and r["fails"]]
+        print(f"  {name:18s} {', '.join(bad) if bad else 'none'}")
     (args.out_dir / "table.json").write_text(json.dumps(rows, indent=1))
     keys = list(rows[0])
     md = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
     md += ["| " + " | ".join(str(r[k]) for k in keys) + " |" for r in rows]
     (args.out_dir / "table.md").write_text("\n".join(md) + "\n")
-    plot(args.out_dir, curves)
+    plot(args.out_dir, curves, rows)
     print(f"wrote {args.out_dir}/: heading_error, position_error, lever_arm, biases .png; table.md/json")
     return 0
 
 
-def plot(out: Path, curves: dict) -> None:
+def plot(out: Path, curves: dict, rows: list[dict]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     colors = dict(zip(ERRORS_DEG, ["C0", "C1", "C2", "C3", "C4"], strict=True))
-    fig, axes = plt.subplots(1, 3, figsize=(17, 5), sharey=True)
-    for ax, name in zip(axes, ("sincos", "small-30", "small-5"), strict=True):
+    panels = ("sincos", *SMALL_ANGLE_VARIANTS)
+    fig, grid = plt.subplots(2, 4, figsize=(22, 9.5))
+    axes = grid.ravel()
+    for ax, name in zip(axes, panels, strict=False):
         for e0 in ERRORS_DEG:
             h, err, _ = curves[(name, e0)]
             ax.semilogy(h.t_s - MOTION_START_S, np.maximum(np.abs(err), 1e-4), color=colors[e0],
@@ -150,15 +191,32 @@ def plot(out: Path, curves: dict) -> None:
         ax.axhline(1.0, color="k", lw=0.6)
         ax.axhline(0.5, color="k", lw=0.6, ls="--")
         ax.axvline(100.0, color="grey", lw=0.6)
-        ax.set_title({"sincos": "paper: δsin/δcos filter", "small-30": "small-angle, prior 30°",
-                      "small-5": "small-angle, prior 5°"}[name])
+        ax.set_title(TITLES[name], fontsize=10)
         ax.set_xlabel("time since motion start [s]")
         ax.set_ylim(1e-3, 200)
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].set_ylabel("|heading error| [deg] (dotted: filter 1σ)")
+        ax.set_ylabel("|heading error| [deg] (dotted: filter 1σ)")
     axes[0].legend(title="initial error")
+    # last panel: final |error| against the initial error, every variant; open marker = fails
+    ax = axes[len(panels)]
+    for i, name in enumerate(panels):
+        rs = [r for r in rows if r["filter"] == name]
+        e0 = np.array([r["initial_error_deg"] for r in rs])
+        fe = np.maximum(np.abs([r["final_error_deg"] for r in rs]), 1e-3)
+        bad = np.array([r["fails"] for r in rs])
+        ax.semilogy(e0, fe, color=f"C{i}", lw=0.8, label=name)
+        ax.semilogy(e0[~bad], fe[~bad], "o", color=f"C{i}")
+        ax.semilogy(e0[bad], fe[bad], "o", mfc="none", color=f"C{i}")
+    ax.axhline(1.0, color="k", lw=0.6)
+    ax.set_xticks(ERRORS_DEG)
+    ax.set_xlabel("initial heading error [deg]")
+    ax.set_ylabel("|final heading error| [deg] (open marker: fails)")
+    ax.set_title("final error after 300 s, every variant", fontsize=10)
+    ax.set_ylim(1e-3, 200)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "heading_error.png", dpi=110)
+    fig.savefig(out / "heading_error.png", dpi=100)
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(9, 4.5))
