@@ -452,3 +452,50 @@ def test_sigint_while_homing_stops_the_stage_and_saves(tmp_path):
     last_ts = [ln for ln in lines[:st] if "< 1TS" in ln][-1]
     assert last_ts.endswith("1E\\r\\n")  # HOMING (0x1E) when ST went out
     assert "NOT REFERENCED" in abort["stage_state"]  # an SMC100 stopped while homing is unreferenced
+
+
+def test_stage_that_stalls_again_on_the_retry_is_stopped_and_the_run_ends_with_its_data_saved(tmp_path):
+    import threading
+
+    from firmware_sim.simulator import Simulator
+    from northfinder.cli.find import measure
+
+    run_dir = tmp_path / "run"
+    sim = Simulator(_sim_config(["stage-stall=5"]))
+    done = threading.Event()
+
+    def stall_the_retry_too() -> None:
+        # once move 5 has been commanded (its stall is decided then), move 6 — the retry — stalls too
+        while not done.is_set():
+            if sim.turntable is not None and sim.turntable.moves >= 5:
+                sim.turntable.stall_move = 6
+                return
+            time.sleep(0.001)
+
+    watcher = threading.Thread(target=stall_the_retry_too, daemon=True)
+    with sim as endpoints:
+        watcher.start()
+        cfg = bench_config(endpoints, TRUTH["latitude_deg"])
+        cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
+        cfg.run.positions = 6
+        cfg.run.dwell_s = 1.0
+        try:
+            with pytest.raises(RunFailed) as info:
+                measure(cfg.validate(), RunDir(run_dir), settings=SimSettings(**TRUTH, time_scale=TIME_SCALE),
+                        report=False, progress=False, seq_kwargs={"read_timeout_s": 1.0})
+        finally:
+            done.set()
+            watcher.join()
+    msg = str(info.value)
+    assert "failed twice" in msg and "following error" in msg and "stage stopped (DISABLE" in msg
+    assert str(run_dir) in msg and "--resume" in msg
+    errors = [e for e in _events(run_dir) if e["event"] == "stage_error"]
+    assert [e["attempt"] for e in errors] == [1, 2]
+    kept = _positions(run_dir)
+    assert len(kept) == 4  # positions 1…4; the 5th move (position 5) stalled twice
+    partial = json.loads((run_dir / RESULT).read_text())
+    assert partial["complete"] is False and partial["positions_measured"] == 4
+    assert len(partial["faults"]["stage_errors"]) == 2
+    lines = (run_dir / "turntable.log").read_text()
+    assert lines.count("> 1MM1") == 1 and "> 1ST" in lines
+    _check_replay_identical(run_dir)
