@@ -98,3 +98,16 @@ def northfinder_line(err: str) -> str:
     lines = [ln for ln in err.splitlines() if ln.startswith("northfinder:")]
     assert len(lines) == 1, err
     return lines[0]
+
+
+def start_sim(*argv: str) -> subprocess.Popen[str]:
+    """`python -m firmware_sim ARGV` in its own session (a test's Ctrl-C does not reach it); its
+    first stdout line is the endpoints JSON."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "firmware_sim", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=subprocess_env(),
+        start_new_session=True,
+    )

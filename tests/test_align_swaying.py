@@ -13,21 +13,17 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import signal
 import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
+from helpers import northfinder_line, read_events, run_cli, sigint_when, start_cli, start_sim
 
 from northfinder.align import swaying_run as sr
 from northfinder.cli import main
 from northfinder.cli.replay import differences
-from northfinder.rundir import CONFIG, EVENTS, RESULT
+from northfinder.rundir import CONFIG, RESULT
 
-ROOT = Path(__file__).resolve().parents[1]
 TIME_SCALE = 40.0
 """The ship's 1000 Hz stream read by the Imu driver lost nothing at 30× and 50× on this shared 2-core
 host (300 device s in 11.7 s and 8.4 s of wall). A simulator that falls behind delays the data, it
@@ -35,36 +31,8 @@ does not lose it (a slow reader would: the counters are asserted to be 0)."""
 TILT_TOL_DEG = math.degrees(30e-6 + 20e-6 + 6e-6) + 0.0003
 
 
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
-    return env
-
-
-def _events(run_dir: Path) -> list[dict]:
-    p = run_dir / EVENTS
-    if not p.exists():
-        return []
-    return [json.loads(ln) for ln in p.read_text().splitlines() if ln.strip()]
-
-
 def _cli(*argv: str, cwd: Path, timeout_s: float = 120.0) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "northfinder", "align", "--mode", "swaying", *argv],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        env=_env(),
-        timeout=timeout_s,
-    )
-
-
-def _error_line(err: str) -> str:
-    """The one `northfinder:` line (the progress bar may have drawn above it), no traceback."""
-    assert "Traceback" not in err, err
-    lines = [ln for ln in err.splitlines() if ln.startswith("northfinder:")]
-    assert len(lines) == 1, err
-    return lines[0]
+    return run_cli("align", "--mode", "swaying", *argv, cwd=cwd, timeout_s=timeout_s)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -120,7 +88,7 @@ def test_simulated_300_s_alignment_is_within_3_sigma_of_the_truth(e2e_run):
 def test_replay_recomputes_the_run_bit_for_bit(e2e_run):
     run_dir, result, _ = e2e_run
     assert json.loads((run_dir / CONFIG).read_text())["kind"] == sr.KIND
-    assert _events(run_dir)[0]["kind"] == sr.KIND
+    assert read_events(run_dir)[0]["kind"] == sr.KIND
     again, complete = sr.replay_swaying_run(run_dir)
     assert complete is True
     assert differences(result, again) == []
@@ -131,46 +99,22 @@ def test_ctrl_c_keeps_the_data_and_exits_130(tmp_path):
     """SIGINT after ~20 device s: too short to align, so the run says so, keeps imu.raw and the
     events (end: incomplete), and exits 130 with one line naming the run directory."""
     run_dir = tmp_path / "run"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "northfinder",
-            "align",
-            "--mode",
-            "swaying",
-            "--simulate",
-            "--time-scale",
-            str(TIME_SCALE),
-            "--out",
-            str(run_dir),
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc = start_cli(
+        "align", "--mode", "swaying", "--simulate", "--time-scale", str(TIME_SCALE), "--out", str(run_dir),
         cwd=tmp_path,
-        env=_env(),
     )
-    try:
-        deadline = time.monotonic() + 60.0
-        while not any(e["event"] == "start" for e in _events(run_dir)):
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "no start event within 60 s"
-            time.sleep(0.05)
-        while (run_dir / "imu.raw").stat().st_size < 36 * 1000 * 20:
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    _, err = sigint_when(
+        proc,
+        [
+            (lambda: any(e["event"] == "start" for e in read_events(run_dir)), "a start event"),
+            (lambda: (run_dir / "imu.raw").stat().st_size >= 36 * 1000 * 20, "20 s of IMU data"),
+        ],
+        timeout_s=60.0,
+    )
     assert proc.returncode == 130, err
-    line = _error_line(err)
+    line = northfinder_line(err)
     assert "SIGINT" in line and str(run_dir) in line and "at least 80 s" in line
-    end = [e for e in _events(run_dir) if e["event"] == "end"]
+    end = [e for e in read_events(run_dir) if e["event"] == "end"]
     assert len(end) == 1 and end[0]["complete"] is False and end[0]["imu"]["samples"] >= 20_000
     with pytest.raises(Exception, match="too short"):
         sr.replay_swaying_run(run_dir)
@@ -192,7 +136,7 @@ def test_sway_that_saturates_the_gyro_is_refused_in_one_line(tmp_path, capsys):
         str(tmp_path / "r"),
     ]
     assert main(["align", "--mode", "swaying", *argv]) == 2
-    line = _error_line(capsys.readouterr().err)
+    line = northfinder_line(capsys.readouterr().err)
     assert "saturates the gyro" in line and "490" in line
 
 
@@ -203,14 +147,7 @@ def test_an_imu_without_accelerometers_is_refused_in_one_line(tmp_path, capsys):
     sim_toml.write_text(
         f'scenario = "ship"\nimu_variant = "gyro-3axis"\ntime_scale = {TIME_SCALE}\nseed = 2\n'
     )
-    sim = subprocess.Popen(
-        [sys.executable, "-m", "firmware_sim", "--config", str(sim_toml)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=_env(),
-        start_new_session=True,
-    )
+    sim = start_sim("--config", str(sim_toml))
     try:
         port = json.loads(sim.stdout.readline())["imu"]
         bench = tmp_path / "bench.toml"
@@ -221,7 +158,7 @@ def test_an_imu_without_accelerometers_is_refused_in_one_line(tmp_path, capsys):
         sim.terminate()
         sim.communicate(timeout=20)
     assert rc == 3
-    line = _error_line(capsys.readouterr().err)
+    line = northfinder_line(capsys.readouterr().err)
     assert port in line and "no valid accelerometers" in line
 
 
@@ -229,27 +166,17 @@ def test_hardware_path_on_the_simulated_ship_aligns_and_replays(tmp_path):
     """The --config path (IMU configured and read back, latitude from [site], --sway-period for a
     faster sway: a 40 s window) against firmware-sim's ship started by hand: no truth in the result,
     the heading within the ship's yaw sway (±3°) plus 3σ of its mean heading, replay bit-identical."""
-    sim = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "firmware_sim",
-            "--scenario",
-            "ship",
-            "--sway",
-            "roll=10:4,pitch=5:3,yaw=3:5",
-            "--heading",
-            "123.0",
-            "--seed",
-            "5",
-            "--time-scale",
-            str(TIME_SCALE),
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=_env(),
-        start_new_session=True,
+    sim = start_sim(
+        "--scenario",
+        "ship",
+        "--sway",
+        "roll=10:4,pitch=5:3,yaw=3:5",
+        "--heading",
+        "123.0",
+        "--seed",
+        "5",
+        "--time-scale",
+        str(TIME_SCALE),
     )
     run_dir = tmp_path / "run"
     try:
@@ -298,7 +225,7 @@ def test_flag_mistakes_are_one_line_before_anything_starts(argv, needle, tmp_pat
     rc = main(["align", "--mode", "swaying", *argv, "--out", str(tmp_path / "run")])
     _, err = capsys.readouterr()
     assert rc == 2
-    assert needle in _error_line(err)
+    assert needle in northfinder_line(err)
     assert not (tmp_path / "run").exists()
 
 
@@ -306,10 +233,10 @@ def test_bench_config_without_an_imu_port_or_latitude_is_one_line(tmp_path, caps
     cfg = tmp_path / "bench.toml"
     cfg.write_text("[site]\nlatitude_deg = 40.0\n")
     assert main(["align", "--mode", "swaying", "--config", str(cfg), "--out", str(tmp_path / "r")]) == 2
-    assert "[imu] port is missing" in _error_line(capsys.readouterr().err)
+    assert "[imu] port is missing" in northfinder_line(capsys.readouterr().err)
     cfg.write_text('[imu]\nport = "/dev/ttyUSB7"\n')
     assert main(["align", "--mode", "swaying", "--config", str(cfg), "--out", str(tmp_path / "r")]) == 2
-    assert "[site] latitude_deg is missing" in _error_line(capsys.readouterr().err)
+    assert "[site] latitude_deg is missing" in northfinder_line(capsys.readouterr().err)
 
 
 def test_sway_text_round_trips_and_sets_the_smoothing_period():

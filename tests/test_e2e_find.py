@@ -14,26 +14,22 @@ the tilt factor of docs/estimators.md), never from what a run printed.
 from __future__ import annotations
 
 import json
-import os
-import signal
 import subprocess
-import sys
-import time
 import uuid
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import northfinder_line, only_line, read_events, run_cli, sigint_when, start_cli
 
 from northfinder.config import BenchConfig
 from northfinder.estimators.limits import noise_limit_heading_std_deg
 from northfinder.rotations import tilt_and_azimuth
-from northfinder.rundir import EVENTS, RESULT, RunDir, jsonable, replay
+from northfinder.rundir import RESULT, RunDir, jsonable, replay
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 
 pytestmark = pytest.mark.slow
 
-REPO = Path(__file__).resolve().parents[1]
 POSITIONS = 8
 DWELL_S = 3.0
 TIME_SCALE = 10.0
@@ -217,72 +213,33 @@ def test_find_with_the_accelerometer_on_socketcan_vcan0(tmp_path):
 # -- command line: Ctrl-C, user mistakes ------------------------------------------------------------
 
 
-def _env() -> dict[str, str]:
-    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
-
-
-def _cli(*argv: str, cwd: Path, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "northfinder", *argv],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=timeout,
-        env=_env(),
-    )
-
-
-def _events(run_dir: Path) -> list[dict]:
-    p = run_dir / EVENTS
-    if not p.exists():
-        return []
-    return [json.loads(line) for line in p.read_text().splitlines() if line.strip()]
-
-
 def test_ctrl_c_mid_run_stops_the_stage_saves_and_exits_130(tmp_path, fast_stage):
     run_dir = tmp_path / "run"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "northfinder",
-            "find",
-            "--simulate",
-            "--positions",
-            str(POSITIONS),
-            "--dwell",
-            str(DWELL_S),
-            "--time-scale",
-            str(TIME_SCALE),
-            "--sim-config",
-            str(fast_stage),
-            "--out",
-            str(run_dir),
-            "--no-report",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc = start_cli(
+        "find",
+        "--simulate",
+        "--positions",
+        str(POSITIONS),
+        "--dwell",
+        str(DWELL_S),
+        "--time-scale",
+        str(TIME_SCALE),
+        "--sim-config",
+        str(fast_stage),
+        "--out",
+        str(run_dir),
+        "--no-report",
         cwd=tmp_path,
-        env=_env(),
     )
-    try:
-        deadline = time.monotonic() + 90.0
-        while sum(e["event"] == "position" for e in _events(run_dir)) < 3:
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "no 3 positions within 90 s"
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    _, err = sigint_when(
+        proc,
+        [(lambda: sum(e["event"] == "position" for e in read_events(run_dir)) >= 3, "3 positions")],
+        timeout_s=90.0,
+    )
     assert proc.returncode == 130, err
-    assert "Traceback" not in err
-    lines = [ln for ln in err.splitlines() if ln.startswith("northfinder:")]
-    assert len(lines) == 1 and "stopped" in lines[0] and str(run_dir) in lines[0]
-    events = _events(run_dir)
+    line = northfinder_line(err)
+    assert "stopped" in line and str(run_dir) in line
+    events = read_events(run_dir)
     abort = [e for e in events if e["event"] == "abort"]
     assert len(abort) == 1 and abort[0]["signal"] == "SIGINT"
     assert abort[0]["stage_moving"] is False
@@ -297,7 +254,7 @@ def test_ctrl_c_mid_run_stops_the_stage_saves_and_exits_130(tmp_path, fast_stage
     partial = json.loads((run_dir / RESULT).read_text())
     assert partial["complete"] is False and partial["positions_measured"] == k
 
-    again = _cli("replay", str(run_dir), "--quiet", cwd=tmp_path)
+    again = run_cli("replay", str(run_dir), "--quiet", cwd=tmp_path)
     assert again.returncode == 1, again.stderr
     assert f"incomplete run, {k} of {POSITIONS} positions" in again.stdout
     assert "identical to the live result.json" in again.stdout
@@ -321,28 +278,25 @@ def _bench_toml(path: Path, turntable: str, imu: str, channel: str, extra: str =
 
 def _one_line(proc: subprocess.CompletedProcess[str]) -> str:
     assert proc.returncode not in (0, 1), (proc.returncode, proc.stderr)
-    assert "Traceback" not in proc.stderr
-    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1, proc.stderr
-    return lines[0]
+    return only_line(proc.stderr)
 
 
 def test_port_that_does_not_exist_is_one_line(tmp_path):
     toml = _bench_toml(tmp_path / "bench.toml", "/dev/ttyNOSUCH0", "/dev/ttyNOSUCH1", "/dev/ttyNOSUCH2")
-    line = _one_line(_cli("find", "--config", str(toml), "--out", str(tmp_path / "run"), cwd=tmp_path))
+    line = _one_line(run_cli("find", "--config", str(toml), "--out", str(tmp_path / "run"), cwd=tmp_path))
     assert "turntable" in line and "/dev/ttyNOSUCH0" in line
 
 
 def test_imu_port_given_as_the_turntable_port_is_one_line(tmp_path, sim_endpoints):
     ep = sim_endpoints
     toml = _bench_toml(tmp_path / "bench.toml", ep["imu"], ep["turntable"], ep["can"]["channel"])
-    line = _one_line(_cli("find", "--config", str(toml), "--out", str(tmp_path / "run"), cwd=tmp_path))
+    line = _one_line(run_cli("find", "--config", str(toml), "--out", str(tmp_path / "run"), cwd=tmp_path))
     assert "turntable" in line and ep["imu"] in line and "SMC100" in line
 
 
 def test_check_names_what_answered_and_what_did_not(tmp_path, sim_endpoints):
     ep = sim_endpoints
-    good = _cli(
+    good = run_cli(
         "check",
         "--config",
         str(_bench_toml(tmp_path / "good.toml", ep["turntable"], ep["imu"], ep["can"]["channel"])),
@@ -353,7 +307,7 @@ def test_check_names_what_answered_and_what_did_not(tmp_path, sim_endpoints):
     assert f"turntable on {ep['turntable']}" in out and "state" in out
     assert f"imu on {ep['imu']}: 1000 Hz" in out and "DELTA RAD" in out
     assert "heartbeat" in out and "FAIL" not in out
-    bad = _cli(
+    bad = run_cli(
         "check",
         "--config",
         str(_bench_toml(tmp_path / "bad.toml", ep["imu"], "/dev/ttyNOSUCH1", ep["can"]["channel"])),
