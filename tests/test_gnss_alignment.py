@@ -178,11 +178,13 @@ def test_open_loop_small_angle_filter_fails_from_45_deg(paper_runs, data):
 
     Why it must, whatever the code prints: its model δC·u = (Ĉu) × φ has only the part of
     Ĉu − Cu perpendicular to Ĉu (size |u|·sin δψ) and drops the parallel part |u|·(1 − cos δψ)
-    (29 % of the signal at 45°). Linearized about the coarse heading for the whole run, even a
-    perfect fit of the perpendicular part gives φ̂U = sin δψ and leaves δψ − sin δψ = 4.5° from
-    45° (4.5× the 1° line), while its claimed σ comes from the GNSS noise and the motion alone
-    (≈ 0.03°, like the paper filter's), so the error exceeds 3σ by far. From 10° the same residual
-    is 0.05°, 20× below 1°: there the open loop must work (the option is not simply broken)."""
+    (29 % of the signal at 45°). Linearized about the coarse heading for the whole run, a perfect
+    fit of the perpendicular part alone gives φ̂U = sin δψ and leaves δψ − sin δψ = 4.5° from 45°
+    (4.5× the 1° line); the dropped part goes into the lever-arm, tilt and bias states and moves
+    the result either way, by degrees, not back under 1°. Its claimed σ comes from the GNSS noise
+    and the motion alone (≈ 0.03°, like the paper filter's), so the error exceeds 3σ by far. From
+    10° the same residual is 0.05°, 20× below 1°: there the open loop must work (the option is not
+    simply broken)."""
     cfg = replace(CONFIG, heading_std_deg=5.0)
     out = {}
     for e0 in (10.0, 45.0):
