@@ -393,6 +393,7 @@ class Sequencer:
         """
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
+            self._check_stop()
             if self.accel.discard_pending() == 0:
                 time.sleep(quiet_s)
                 if self.accel.discard_pending() == 0:
