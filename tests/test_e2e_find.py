@@ -137,16 +137,7 @@ def fast_stage_50hz(tmp_path_factory) -> Path:
 def test_find_against_firmware_sim_process_over_ptys_and_slcan(tmp_path, fast_stage_50hz, truth):
     from northfinder.cli.find import measure
 
-    settings = SimSettings(
-        heading_deg=truth["heading_deg"],
-        pitch_deg=truth["pitch_deg"],
-        roll_deg=truth["roll_deg"],
-        latitude_deg=truth["latitude_deg"],
-        grade=truth["grade"],
-        seed=truth["seed"],
-        time_scale=TIME_SCALE,
-        config=str(fast_stage_50hz),
-    )
+    settings = SimSettings(**truth, time_scale=TIME_SCALE, config=str(fast_stage_50hz))
     run_dir = tmp_path / "run"
     with SimulatorProcess(settings) as endpoints:
         assert endpoints["can"]["interface"] == "slcan"
@@ -173,12 +164,7 @@ def _in_process_run(tmp_path: Path, interface: str, channel: str) -> None:
 
     truth = TRUTHS[0]
     sim_cfg = SimConfig(
-        heading_deg=truth["heading_deg"],
-        pitch_deg=truth["pitch_deg"],
-        roll_deg=truth["roll_deg"],
-        latitude_deg=truth["latitude_deg"],
-        grade=truth["grade"],
-        seed=truth["seed"],
+        **truth,
         time_scale=TIME_SCALE,
         stage_speed_dps=90.0,
         stage_accel_dps2=360.0,

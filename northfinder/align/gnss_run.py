@@ -590,12 +590,7 @@ def replay_gnss_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
 # ---------------------------------------------------------------------------------------------
 def write_gnss_report(result: dict[str, Any], hist: dict[str, Any], path: str | Path) -> Path:
     """report.png: heading error (or heading) and σ against time, position error, lever arm."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(3, 1, figsize=(9, 10), sharex=True)
+    fig, axes = runs.report_axes(3, (9, 10), sharex=True)
     t = np.asarray(hist["t_s"])
     ax = axes[0]
     sig = np.asarray(hist["heading_std_deg"])
@@ -634,11 +629,7 @@ def write_gnss_report(result: dict[str, Any], hist: dict[str, Any], path: str | 
     ax.set_xlabel("device time since the first IMU sample [s]")
     ax.legend(loc="upper right")
     ax.grid(True, alpha=0.3)
-    fig.tight_layout()
-    out = Path(path)
-    fig.savefig(out, dpi=80)
-    plt.close(fig)
-    return out
+    return runs.save_report(fig, path)
 
 
 def save_result(

@@ -397,3 +397,27 @@ def print_head(console: Any, head: Any, result: dict[str, Any]) -> None:
     if not result.get("complete", True):
         head.add_row("[red]INCOMPLETE[/]", "stopped before the end of the window")
     console.print(head)
+
+
+# ---------------------------------------------------------------------------------------------
+# report.png
+# ---------------------------------------------------------------------------------------------
+def report_axes(rows: int, figsize: tuple[float, float], sharex: bool = False) -> tuple[Any, Any]:
+    """A figure of `rows` stacked axes on the Agg backend (no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(rows, 1, figsize=figsize, sharex=sharex)
+
+
+def save_report(fig: Any, path: str | Path) -> Path:
+    """Lay out, write (80 dpi) and close the figure; its path."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    out = Path(path)
+    fig.savefig(out, dpi=80)
+    plt.close(fig)
+    return out

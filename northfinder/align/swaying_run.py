@@ -504,12 +504,7 @@ def cone_residuals(block: Any, sol: Any, max_sway_period_s: float) -> dict[str, 
 
 def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], path: str | Path) -> Path:
     """report.png: the body rates (the sway), the cone-fit residuals, the result and its truth."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 1, figsize=(9, 7))
+    fig, axes = runs.report_axes(2, (9, 7))
     ax = axes[0]
     for j, name in enumerate("xyz"):
         ax.plot(resid["t_gyro_s"], resid["gyro_dps"][:, j], lw=0.6, label=f"gyro {name}")
@@ -534,11 +529,7 @@ def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], p
     )
     ax.legend(loc="upper right", fontsize=8)
     ax.grid(True, alpha=0.3)
-    fig.tight_layout()
-    out = Path(path)
-    fig.savefig(out, dpi=80)
-    plt.close(fig)
-    return out
+    return runs.save_report(fig, path)
 
 
 def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool = True) -> dict[str, Any]:
