@@ -144,120 +144,111 @@ def bench(request):
     sim.stop()
 
 
-def test_smc100_golden_exchange(golden, bench):
-    sim, ep = bench
-    stage = Stage(ep["turntable"])
-    try:
-        for step in golden["smc100"]["exchange"]:
-            if step.get("wait_ready"):
-                assert stage.wait_state((step["state"],)) == (0, step["state"])
-            elif "reply_position_near" in step:
-                step_deg = math.degrees(sim.world.table.encoder_step_rad)
-                assert abs(stage.position_deg() - step["reply_position_near"]) <= step_deg
-            elif step["reply"] is None:
-                stage.send(step["send"])
-            else:
-                assert stage.ask(step["send"]) == step["reply"], step
-    finally:
-        stage.close()
+@pytest.fixture
+def stage(bench):
+    """A serial host on the running bench's SMC100 pty (closed after the test)."""
+    _, ep = bench
+    host = Stage(ep["turntable"])
+    yield host
+    host.close()
 
 
-def test_smc100_state_machine_and_te_letters(bench):
-    sim, ep = bench
-    stage = Stage(ep["turntable"])
-    try:
-        assert stage.ask("1TS") == "1TS00000A"
-        assert stage.ask("1TS?") == "1TS00000A"
-        assert stage.ask("1VE").startswith("1VE ")
-        stage.send("1PA90")
-        assert stage.ask("1TE") == "1TEH"
-        stage.send("1OR")
-        stage.send("1OR")
-        assert stage.ask("1TE") == "1TEE"  # home already started
-        stage.send("1PA10")
-        assert stage.ask("1TE") == "1TEL"  # not allowed in HOMING
-        stage.wait_state((smc100.READY_FROM_HOMING,))
-        assert stage.position_deg() == 0.0
-        stage.send("1OR")
-        assert stage.ask("1TE") == "1TEK"  # not allowed in READY
-        stage.send("1PA")
-        assert stage.ask("1TE") == "1TEC"  # parameter missing
-        stage.send("1PAabc")
-        assert stage.ask("1TE") == "1TEC"
-        stage.send("0TS")
-        assert stage.ask("1TE") == "1TEB"  # bad address
-        stage.send("1ZZ")
-        assert stage.ask("1TE") == "1TEA"
-        # soft limits: query forms, set, refuse a move beyond, refuse a bad value
-        assert stage.ask("1SL?") == "1SL-360"
-        assert stage.ask("1SR") == "1SR360"
-        stage.send("1SL-10")
-        assert stage.ask("1TE") == "1TE@"
-        assert stage.ask("1SL?") == "1SL-10"
-        stage.send("1PA-20")
-        assert stage.ask("1TE") == "1TEN"
-        stage.send("1PR-10.5")
-        assert stage.ask("1TE") == "1TEN"
-        stage.send("1SL5")
-        assert stage.ask("1TE") == "1TEC"
-        # a long move: MOVING, M for a second move, ST ends it early in READY from MOVING
-        stage.send("1PA300")
-        assert stage.ask("1TE") == "1TE@"
-        assert stage.status() == (0, smc100.MOVING)
-        stage.send("1PA10")
-        assert stage.ask("1TE") == "1TEM"
-        stage.send("1ST")
-        errors, state = stage.wait_state((smc100.READY_FROM_MOVING,))
-        stopped = stage.position_deg()
-        assert errors == 0 and 0.0 < stopped < 300.0
-        # RS: back to NOT REFERENCED, limits back to their defaults
-        stage.send("1RS")
-        assert stage.ask("1TS") == "1TS00000A"
-        assert stage.ask("1SL") == "1SL-360"
-    finally:
-        stage.close()
+def test_smc100_golden_exchange(golden, bench, stage):
+    sim, _ = bench
+    for step in golden["smc100"]["exchange"]:
+        if step.get("wait_ready"):
+            assert stage.wait_state((step["state"],)) == (0, step["state"])
+        elif "reply_position_near" in step:
+            step_deg = math.degrees(sim.world.table.encoder_step_rad)
+            assert abs(stage.position_deg() - step["reply_position_near"]) <= step_deg
+        elif step["reply"] is None:
+            stage.send(step["send"])
+        else:
+            assert stage.ask(step["send"]) == step["reply"], step
 
 
-def test_smc100_move_to_90_ends_ready_at_90_within_encoder_step(bench):
-    sim, ep = bench
-    stage = Stage(ep["turntable"])
-    try:
-        stage.send("1OR")
-        stage.wait_state((smc100.READY_FROM_HOMING,))
-        stage.send("1PA90")
-        assert stage.ask("1TE") == "1TE@"
-        assert stage.wait_state((smc100.READY_FROM_MOVING,)) == (0, smc100.READY_FROM_MOVING)
-        step_deg = math.degrees(sim.world.table.encoder_step_rad)
-        assert abs(stage.position_deg() - 90.0) <= step_deg
-        stage.send("1PR-45.5")
-        stage.wait_state((smc100.READY_FROM_MOVING,))
-        assert abs(stage.position_deg() - 44.5) <= step_deg
-    finally:
-        stage.close()
+def test_smc100_state_machine_and_te_letters(stage):
+    assert stage.ask("1TS") == "1TS00000A"
+    assert stage.ask("1TS?") == "1TS00000A"
+    assert stage.ask("1VE").startswith("1VE ")
+    stage.send("1PA90")
+    assert stage.ask("1TE") == "1TEH"
+    stage.send("1OR")
+    stage.send("1OR")
+    assert stage.ask("1TE") == "1TEE"  # home already started
+    stage.send("1PA10")
+    assert stage.ask("1TE") == "1TEL"  # not allowed in HOMING
+    stage.wait_state((smc100.READY_FROM_HOMING,))
+    assert stage.position_deg() == 0.0
+    stage.send("1OR")
+    assert stage.ask("1TE") == "1TEK"  # not allowed in READY
+    stage.send("1PA")
+    assert stage.ask("1TE") == "1TEC"  # parameter missing
+    stage.send("1PAabc")
+    assert stage.ask("1TE") == "1TEC"
+    stage.send("0TS")
+    assert stage.ask("1TE") == "1TEB"  # bad address
+    stage.send("1ZZ")
+    assert stage.ask("1TE") == "1TEA"
+    # soft limits: query forms, set, refuse a move beyond, refuse a bad value
+    assert stage.ask("1SL?") == "1SL-360"
+    assert stage.ask("1SR") == "1SR360"
+    stage.send("1SL-10")
+    assert stage.ask("1TE") == "1TE@"
+    assert stage.ask("1SL?") == "1SL-10"
+    stage.send("1PA-20")
+    assert stage.ask("1TE") == "1TEN"
+    stage.send("1PR-10.5")
+    assert stage.ask("1TE") == "1TEN"
+    stage.send("1SL5")
+    assert stage.ask("1TE") == "1TEC"
+    # a long move: MOVING, M for a second move, ST ends it early in READY from MOVING
+    stage.send("1PA300")
+    assert stage.ask("1TE") == "1TE@"
+    assert stage.status() == (0, smc100.MOVING)
+    stage.send("1PA10")
+    assert stage.ask("1TE") == "1TEM"
+    stage.send("1ST")
+    errors, state = stage.wait_state((smc100.READY_FROM_MOVING,))
+    stopped = stage.position_deg()
+    assert errors == 0 and 0.0 < stopped < 300.0
+    # RS: back to NOT REFERENCED, limits back to their defaults
+    stage.send("1RS")
+    assert stage.ask("1TS") == "1TS00000A"
+    assert stage.ask("1SL") == "1SL-360"
+
+
+def test_smc100_move_to_90_ends_ready_at_90_within_encoder_step(bench, stage):
+    sim, _ = bench
+    stage.send("1OR")
+    stage.wait_state((smc100.READY_FROM_HOMING,))
+    stage.send("1PA90")
+    assert stage.ask("1TE") == "1TE@"
+    assert stage.wait_state((smc100.READY_FROM_MOVING,)) == (0, smc100.READY_FROM_MOVING)
+    step_deg = math.degrees(sim.world.table.encoder_step_rad)
+    assert abs(stage.position_deg() - 90.0) <= step_deg
+    stage.send("1PR-45.5")
+    stage.wait_state((smc100.READY_FROM_MOVING,))
+    assert abs(stage.position_deg() - 44.5) <= step_deg
 
 
 @pytest.mark.parametrize("bench", [{"faults": ["stage-stall=2"]}], indirect=True)
-def test_smc100_stall_fault_gives_following_error_and_disable(bench):
-    sim, ep = bench
-    stage = Stage(ep["turntable"])
-    try:
-        stage.send("1OR")
-        stage.wait_state((smc100.READY_FROM_HOMING,))
-        stage.send("1PA20")
-        assert stage.wait_state((smc100.READY_FROM_MOVING,)) == (0, smc100.READY_FROM_MOVING)
-        stage.send("1PA120")  # the second move jams
-        errors, state = stage.wait_state((smc100.DISABLE_FROM_MOVING,))
-        assert errors & 0x20  # following error
-        stalled = stage.position_deg()
-        assert 20.0 < stalled < 120.0
-        stage.send("1PA10")
-        assert stage.ask("1TE") == "1TEJ"  # not allowed in DISABLE
-        stage.send("1MM1")
-        assert stage.status() == (0, smc100.READY_FROM_DISABLE)
-        stage.send("1PA120")  # only that one move stalls
-        assert stage.wait_state((smc100.READY_FROM_MOVING,)) == (0, smc100.READY_FROM_MOVING)
-    finally:
-        stage.close()
+def test_smc100_stall_fault_gives_following_error_and_disable(stage):
+    stage.send("1OR")
+    stage.wait_state((smc100.READY_FROM_HOMING,))
+    stage.send("1PA20")
+    assert stage.wait_state((smc100.READY_FROM_MOVING,)) == (0, smc100.READY_FROM_MOVING)
+    stage.send("1PA120")  # the second move jams
+    errors, state = stage.wait_state((smc100.DISABLE_FROM_MOVING,))
+    assert errors & 0x20  # following error
+    stalled = stage.position_deg()
+    assert 20.0 < stalled < 120.0
+    stage.send("1PA10")
+    assert stage.ask("1TE") == "1TEJ"  # not allowed in DISABLE
+    stage.send("1MM1")
+    assert stage.status() == (0, smc100.READY_FROM_DISABLE)
+    stage.send("1PA120")  # only that one move stalls
+    assert stage.wait_state((smc100.READY_FROM_MOVING,)) == (0, smc100.READY_FROM_MOVING)
 
 
 # ---------------------------------------------------------------------------------------------
