@@ -95,6 +95,12 @@ class PtyPort:
             return False
         return not any(ev & select.POLLHUP for _, ev in self._poll.poll(0))
 
+    def watch_fileno(self) -> int | None:
+        """The master fd for a loop to watch for input; None while closed or while no client has
+        the slave open (a client-less master polls readable — hang-up — all the time, which would
+        make the loop spin)."""
+        return None if self.closed or not self.connected else self.master_fd
+
     def write(self, data: bytes) -> None:
         """Queue bytes for the client and push what the kernel takes now; overflow is dropped."""
         if self.closed or not data:

@@ -626,3 +626,23 @@ def test_a_client_that_stops_reading_never_blocks_the_bench():
         imu.close()
     finally:
         sim.stop()
+
+
+def test_loop_does_not_spin_on_ports_without_a_client():
+    """A pty master with no client polls readable (hang-up): the loop must not watch it, or it
+    spins a core while waiting. At time scale 1 the loop ticks a few hundred times a second."""
+    import time as _time
+
+    from firmware_sim.simulator import SimConfig, Simulator
+
+    sim = Simulator(SimConfig(time_scale=1.0))
+    sim.start()
+    try:
+        _time.sleep(1.0)  # past the warm-up
+        ticks0, t0 = sim.ticks, _time.monotonic()
+        _time.sleep(0.5)
+        rate = (sim.ticks - ticks0) / (_time.monotonic() - t0)
+    finally:
+        sim.stop()
+    # one tick per select timeout (a few ms) when idle; a spinning loop does tens of thousands
+    assert rate < 2000, f"{rate:.0f} loop ticks per second with no client"

@@ -57,9 +57,15 @@ def main() -> int:
         n = int(round(args.device_s * args.rate_hz))
         want = MESSAGE_BYTES * (n + 1)
         port = serial.Serial(endpoints["imu"], 921600, timeout=0.5)
+        # The clock starts once the simulator has loaded scipy (after the endpoints line): measure
+        # the stream from its first bytes, and say how long they took to come.
+        t_open = time.monotonic()
+        raw = bytearray(port.read(1))
+        while not raw and time.monotonic() < t_open + 30.0:
+            raw += port.read(1)
+        t_first = time.monotonic() - t_open
         cpu0_sim, cpu0_client = proc_cpu_s(proc.pid), time.process_time()
         t0 = time.monotonic()
-        raw = bytearray()
         deadline = t0 + 10.0 * args.device_s / args.time_scale + 10.0
         while len(raw) < want and time.monotonic() < deadline:
             raw += port.read(want - len(raw))
@@ -75,6 +81,7 @@ def main() -> int:
     seq = msgs["sequence"].astype(int)
     gaps = int(np.count_nonzero(np.diff(seq) % 128 != 1))
     print(f"endpoints printed after     {t_endpoints:.2f} s (launch to JSON line)")
+    print(f"first IMU bytes after       {t_first:.2f} s (port open to data: the simulator's warm-up)")
     print(f"device time                 {args.device_s:g} s at {args.rate_hz} Hz, "
           f"time scale {args.time_scale:g} (ideal wall {args.device_s / args.time_scale:.2f} s)")
     print(f"messages read               {len(msgs)} of {n}")

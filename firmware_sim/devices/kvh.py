@@ -219,7 +219,7 @@ class KvhImu(Device):
 
     # -- Device surface ---------------------------------------------------------------------
     def fileno(self) -> int | None:
-        return None if self.port.closed else self.port.fileno()
+        return self.port.watch_fileno()
 
     def endpoint(self) -> str:
         return self._link_path or self.port.path

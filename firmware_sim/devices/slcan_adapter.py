@@ -140,9 +140,7 @@ class SlcanAdapter(Device):
     def fileno(self) -> int | None:
         """The pty master while a client has the port open; None otherwise, because a master
         without a client polls readable (hang-up) all the time and would spin the loop."""
-        if self._closed or not self.port.connected:
-            return None
-        return self.port.fileno()
+        return None if self._closed else self.port.watch_fileno()
 
     def endpoint(self) -> dict[str, Any]:
         return {"interface": "slcan", "channel": self.port.path}

@@ -167,7 +167,7 @@ class Smc100(Device):
 
     # -- Device surface ---------------------------------------------------------------------
     def fileno(self) -> int | None:
-        return None if self.port.closed else self.port.fileno()
+        return self.port.watch_fileno()
 
     def endpoint(self) -> str:
         return self.port.path
