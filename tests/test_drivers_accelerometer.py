@@ -174,3 +174,23 @@ def test_socketcan_vcan0(golden):
             assert acc.read(1, timeout_s=3).counter.tolist() == [7]
     finally:
         node.shutdown()
+
+
+def test_blf_log_survives_a_channel_name_with_a_large_number(tmp_path):
+    """BLF keeps the channel as a number parsed from its name: 'rig-1234567' would not fit its
+    16 bits and used to kill the bus thread. The frames are logged without a channel instead."""
+    channel = f"rig-{uuid.uuid4().hex[:4]}-1234567"
+    codec = CanCodec()
+    bus = can.Bus(interface="virtual", channel=channel)
+    try:
+        log = tmp_path / "can.blf"
+        with Accelerometer("virtual", channel, log_path=log) as acc:
+            for c in range(3):
+                _send(bus, *codec.encode("TPDO1", {"accel_x": c, "accel_y": 0}))
+                tpdo2 = {"accel_z": 0, "temperature": 0, "counter": c, "status": 7}
+                _send(bus, *codec.encode("TPDO2", tpdo2))
+            block = acc.read(3, timeout_s=3)
+        replayed, _ = decode_can_log(log)
+        assert np.array_equal(replayed.accel_g, block.accel_g)
+    finally:
+        bus.shutdown()

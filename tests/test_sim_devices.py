@@ -549,7 +549,11 @@ def test_gyro_z_sum_across_a_90_deg_move_is_the_encoder_step_plus_earth_rate():
 
         thread = threading.Thread(target=reader)
         thread.start()
-        time.sleep(0.05)
+        # the IMU delivers to a new client only after a short connect grace (docs/simulator.md):
+        # the move must start after the first frames are here, or the sum misses its beginning
+        deadline = time.monotonic() + 10.0
+        while len(raw) < 100 * 36 and time.monotonic() < deadline:
+            time.sleep(0.01)
         start_deg = stage.position_deg()
         stage.send("1PA90")
         stage.wait_state((smc100.READY_FROM_MOVING,))

@@ -24,6 +24,7 @@ Example::
 
 from __future__ import annotations
 
+import copy
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -158,6 +159,13 @@ class Accelerometer:
     # -- frames ------------------------------------------------------------------------------
     def _log(self, msg: can.Message) -> None:
         if self._logger is not None:
+            # BLF stores the channel as the number that ends the channel's name; a name such as
+            # "rig-1234567" gives one above 65535, which the writer cannot pack. Log such
+            # frames without a channel rather than lose the log (and the bus thread) to it.
+            channel = can.util.channel2int(msg.channel)
+            if channel is not None and not 0 <= channel <= 0xFFFF:
+                msg = copy.copy(msg)
+                msg.channel = None
             self._logger.on_message_received(msg)
 
     def _on_frame(self, msg: can.Message) -> None:
