@@ -11,9 +11,9 @@ latitude (firmware_sim.physics.vehicle): L = L0 + N/(R_M+h0), λ = λ0 + E/((R_N
 h = h0 + U, with WGS-84 radii at the site. The GGA altitude is h − geoid_sep_m (geoid
 separation 0 by default, so the altitude is the ellipsoidal height).
 
-Formatting and checksum are written here from the protocol sheet (firmware_sim imports nothing
-from northfinder); positions are formatted from integers (1e-7 minute units), so 59.99999999′
-never prints as 60′. Noise is drawn per epoch in order, so the bytes do not depend on how
+Formatting and checksum are written here from the protocol sheet (firmware_sim imports
+nothing of northfinder's); positions are formatted from integers (1e-7 minute units), so
+59.99999999′ never prints as 60′. Noise is drawn per epoch in order, so the bytes do not depend on how
 `advance` calls split the time. Faults (own random stream): ``gnss-bad-checksum-rate`` (per
 sentence), ``gnss-truncate-rate`` (per sentence: cut at a random byte, then CRLF),
 ``gnss-nofix=START_S:DURATION_S`` (no-fix sentences in that window).
