@@ -408,10 +408,23 @@ def run(args: argparse.Namespace) -> int:
     else:
         cfg = _apply_overrides(bench.load(args.config), args)
         bench.require_ports(cfg)
-    t_wall = time.monotonic()
     if not args.no_report:
         # matplotlib takes a second or two to import: do it while the devices are opened and homed.
         threading.Thread(target=_preload_matplotlib, name="preload-matplotlib", daemon=True).start()
+    return _measure_and_report(args, cfg, rundir, settings, "measurement and report")
+
+
+def _measure_and_report(
+    args: argparse.Namespace,
+    cfg: bench.BenchConfig,
+    rundir: RunDir,
+    settings: SimSettings | None,
+    wall_label: str,
+    **measure_kwargs: Any,
+) -> int:
+    """Start firmware-sim if simulated, measure, draw the report, print the summary (find and
+    --resume alike)."""
+    t_wall = time.monotonic()
     with contextlib.ExitStack() as stack:
         if settings is not None:
             endpoints = stack.enter_context(SimulatorProcess(settings))
@@ -426,13 +439,14 @@ def run(args: argparse.Namespace) -> int:
             can_kwargs={"sleep_after_open": 0.05}
             if settings and cfg.accelerometer.interface == "slcan"
             else None,
+            **measure_kwargs,
         )
     if not args.no_report:
         from northfinder.report import write_report
 
         write_report(result, rundir.report_path)
     print_summary(result, run_dir=rundir.path)
-    print(f"wall time {time.monotonic() - t_wall:.1f} s (measurement and report)", file=sys.stderr)
+    print(f"wall time {time.monotonic() - t_wall:.1f} s ({wall_label})", file=sys.stderr)
     return 0
 
 
@@ -662,30 +676,9 @@ def _resume(args: argparse.Namespace) -> int:
         )
     else:
         bench.require_ports(cfg)
-    t_wall = time.monotonic()
-    with contextlib.ExitStack() as stack:
-        if settings is not None:
-            endpoints = stack.enter_context(SimulatorProcess(settings))
-            cfg = bench_config(endpoints, settings.latitude_deg, cfg)
-        result = measure(
-            cfg,
-            rundir,
-            settings=settings,
-            json_path=args.json,
-            report=False,
-            can_kwargs={"sleep_after_open": 0.05}
-            if settings and cfg.accelerometer.interface == "slcan"
-            else None,
-            previous=previous,
-            skip=done,
-        )
-    if not args.no_report:
-        from northfinder.report import write_report
-
-        write_report(result, rundir.report_path)
-    print_summary(result, run_dir=rundir.path)
-    print(f"wall time {time.monotonic() - t_wall:.1f} s (resumed session {rundir.session})", file=sys.stderr)
-    return 0
+    return _measure_and_report(
+        args, cfg, rundir, settings, f"resumed session {rundir.session}", previous=previous, skip=done
+    )
 
 
 def _aborted(
