@@ -27,6 +27,7 @@ from __future__ import annotations
 import copy
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -204,21 +205,29 @@ class Accelerometer:
 
     def wait_heartbeat(self, timeout_s: float = 3.0, fresh: bool = True) -> int:
         """Wait for the node's next heartbeat (or, with ``fresh=False``, any seen) → its state byte."""
-        deadline = time.monotonic() + timeout_s
         with self._lock:
             seen = self._decoder.stats.heartbeats if fresh else 0
-            while self._decoder.stats.heartbeats <= seen:
-                if self._error is not None:
-                    raise DeviceError(DEVICE, self.port, f"bus error on {self.port}: {self._error}")
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise DeviceError(
-                        DEVICE, self.port,
-                        f"no heartbeat from node 0x{self.node_id:02X} on {self.port} within {timeout_s:g} s "
-                        f"— is the node powered, on this bus, node ID {self.node_id}, {self.bitrate} bit/s?"
-                    )
-                self._lock.wait(remaining)
+            self._wait_locked(
+                lambda: self._decoder.stats.heartbeats > seen,
+                timeout_s,
+                lambda: f"no heartbeat from node 0x{self.node_id:02X} on {self.port} within {timeout_s:g} s "
+                f"— is the node powered, on this bus, node ID {self.node_id}, {self.bitrate} bit/s?",
+            )
             return int(self._decoder.heartbeat_state)
+
+    def _wait_locked(
+        self, ready: Callable[[], bool], timeout_s: float, timeout_message: Callable[[], str]
+    ) -> None:
+        """With the lock held: wait until `ready()`; DeviceError on a bus error or after `timeout_s`
+        (the message from `timeout_message()`)."""
+        deadline = time.monotonic() + timeout_s
+        while not ready():
+            if self._error is not None:
+                raise DeviceError(DEVICE, self.port, f"bus error on {self.port}: {self._error}")
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise DeviceError(DEVICE, self.port, timeout_message())
+            self._lock.wait(remaining)
 
     def wait_heartbeat_state(self, state: int, timeout_s: float = 3.0) -> int:
         """Wait until a heartbeat reports `state` (e.g. 0x05 after :meth:`start_node`)."""
@@ -259,20 +268,14 @@ class Accelerometer:
         if n < 1:
             raise ValueError("n_samples must be >= 1")
         wait_s = self.timeout_s + n / self.rate_hz if timeout_s is None else float(timeout_s)
-        deadline = time.monotonic() + wait_s
         with self._lock:
-            while self._decoder.pending() < n:
-                if self._error is not None:
-                    raise DeviceError(DEVICE, self.port, f"bus error on {self.port}: {self._error}")
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise DeviceError(
-                        DEVICE, self.port,
-                        f"only {self._decoder.pending()} of {n} samples from node 0x{self.node_id:02X} "
-                        f"within {wait_s:g} s on {self.port} — is the node operational (start_node) and the "
-                        "bitrate right?"
-                    )
-                self._lock.wait(remaining)
+            self._wait_locked(
+                lambda: self._decoder.pending() >= n,
+                wait_s,
+                lambda: f"only {self._decoder.pending()} of {n} samples from node 0x{self.node_id:02X} "
+                f"within {wait_s:g} s on {self.port} — is the node operational (start_node) and the "
+                "bitrate right?",
+            )
             raw = self._decoder.drain(n)
         return samples_to_block(raw, self.codec)
 
