@@ -23,14 +23,13 @@ Example::
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import BinaryIO, Protocol
 
 from northfinder.codecs.nmea import GnssFix, NmeaDecoder, NmeaStats
-from northfinder.errors import DeviceError
+from northfinder.drivers._stream import StreamReader
 from northfinder.transport import SerialTransport
 
 __all__ = ["Gnss", "GnssFix", "NmeaStats", "decode_nmea_log"]
@@ -61,12 +60,14 @@ class _ByteTransport(Protocol):  # what the driver needs from SerialTransport (t
     def close(self) -> None: ...
 
 
-class Gnss:
+class Gnss(StreamReader):
     """A GNSS receiver streaming NMEA on a pyserial URL; a context manager with a background reader.
 
     On open it waits up to `timeout_s` for one good NMEA sentence (any type, checksum right) and
     raises DeviceError naming the port if none comes: the wrong port, or the receiver is off.
     """
+
+    device = DEVICE
 
     def __init__(
         self,
@@ -87,9 +88,7 @@ class Gnss:
         self._cond = threading.Condition()
         self._pending: list[GnssFix] = []
         self._error: BaseException | None = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._reader, name=f"gnss-reader {port}", daemon=True)
-        self._thread.start()
+        self._start_reader()
         if wait_for_data:
             try:
                 self._wait_for_first_sentence()
@@ -98,58 +97,34 @@ class Gnss:
                 raise
 
     # -- background reader -------------------------------------------------------------------
-    def _reader(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self._t.read_available()
-            except BaseException as exc:  # noqa: BLE001 - handed to the reading thread
-                with self._cond:
-                    self._error = exc
-                    self._cond.notify_all()
-                return
-            if not data:
-                continue
-            with self._cond:
-                self._pending.extend(self._decoder.feed(data))
-                self._cond.notify_all()
+    def _on_bytes(self, data: bytes, idle_s: float) -> None:
+        self._pending.extend(self._decoder.feed(data))
 
     def _good_sentences(self) -> int:
         s = self._decoder.stats
         return s.sentences + s.unknown + s.malformed
 
     def _wait_for_first_sentence(self) -> None:
-        deadline = time.monotonic() + self.timeout_s
+        def message() -> str:
+            s = self._decoder.stats
+            what = (f"{s.bytes} bytes, {s.bad_checksum} with a bad checksum, {s.truncated} truncated"
+                    if s.bytes else "no bytes at all")
+            return (f"no NMEA sentences on {self.port} within {self.timeout_s:g} s ({what}) — is it the "
+                    "GNSS receiver's port, at 115200 baud?")
+
         with self._cond:
-            while self._good_sentences() == 0:
-                if self._error is not None:
-                    raise self._error
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    s = self._decoder.stats
-                    what = (f"{s.bytes} bytes, {s.bad_checksum} with a bad checksum, {s.truncated} truncated"
-                            if s.bytes else "no bytes at all")
-                    raise DeviceError(
-                        DEVICE, self.port,
-                        f"no NMEA sentences on {self.port} within {self.timeout_s:g} s ({what}) — is it the "
-                        "GNSS receiver's port, at 115200 baud?"
-                    )
-                self._cond.wait(remaining)
+            self._wait_locked(lambda: self._good_sentences() > 0, self.timeout_s, message)
 
     def _wait(self, ready: Callable[[], bool], wait_s: float, what: Callable[[], str]) -> None:
         """Wait (holding the condition) until `ready()`; DeviceError naming the port on timeout."""
-        deadline = time.monotonic() + wait_s
-        while not ready():
-            if self._error is not None:
-                raise self._error
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                s = self._decoder.stats
-                raise DeviceError(
-                    DEVICE, self.port,
-                    f"{what()} within {wait_s:g} s on {self.port} ({s.fixes} fixes so far, {s.no_fix} no-fix "
-                    "sentences) — has the receiver a fix (antenna, sky view) and is it still streaming?"
-                )
-            self._cond.wait(remaining)
+
+        def message() -> str:
+            s = self._decoder.stats
+            return (f"{what()} within {wait_s:g} s on {self.port} ({s.fixes} fixes so far, {s.no_fix} "
+                    "no-fix sentences) — has the receiver a fix (antenna, sky view) and is it still "
+                    "streaming?")
+
+        self._wait_locked(ready, wait_s, message)
 
     # -- fixes -------------------------------------------------------------------------------
     def read_fixes(self, n: int, timeout_s: float | None = None) -> list[GnssFix]:
@@ -198,18 +173,5 @@ class Gnss:
             return replace(self._decoder.stats)
 
     # -- lifetime ----------------------------------------------------------------------------
-    def close(self) -> None:
-        """Stop the reader thread and close the port (and the raw log if the driver opened it)."""
-        self._stop.set()
-        if self._thread.is_alive() and self._thread is not threading.current_thread():
-            self._thread.join(timeout=2.0)
-        self._t.close()
-
-    def __enter__(self) -> Gnss:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     def __repr__(self) -> str:
         return f"Gnss({self.port!r})"

@@ -34,6 +34,7 @@ import numpy as np
 
 from northfinder.codecs import kvh
 from northfinder.codecs.kvh import ImuStats, KvhDecoder
+from northfinder.drivers._stream import StreamReader
 from northfinder.errors import ConfigError, DeviceError
 from northfinder.transport import SerialTransport
 
@@ -97,8 +98,10 @@ class _ByteTransport(Protocol):  # what the driver needs from SerialTransport (t
     def close(self) -> None: ...
 
 
-class Imu:
+class Imu(StreamReader):
     """A KVH format-A IMU on a pyserial URL; a context manager with a background reader."""
+
+    device = DEVICE
 
     def __init__(
         self,
@@ -150,9 +153,7 @@ class Imu:
         self._text = bytearray()
         self._discard_next = 0
         self._error: BaseException | None = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._reader, name=f"imu-reader {port}", daemon=True)
-        self._thread.start()
+        self._start_reader()
         if wait_for_data:
             try:
                 self._wait_for_first_frame()
@@ -177,9 +178,7 @@ class Imu:
         the number of attempts. The decoder and the raw log carry on, so the sample index stays
         monotonic and replay of the raw log decodes exactly what was decoded live.
         Raises the last DeviceError (naming the port) when the device does not come back."""
-        self._stop.set()
-        if self._thread.is_alive() and self._thread is not threading.current_thread():
-            self._thread.join(timeout=2.0)
+        self._stop_reader()
         with contextlib.suppress(Exception):
             self._t.close()
         deadline = time.monotonic() + timeout_s
@@ -198,10 +197,8 @@ class Imu:
                     self._pending, self._pending_n = [], 0
                     self._mark_stall = True  # the samples missed while the link was down
                     frames0 = self._decoder.stats.frames
-                self._stop = threading.Event()
-                self._thread = threading.Thread(target=self._reader, name=f"imu-reader {self.port}",
-                                                daemon=True)
-                self._thread.start()
+                self._start_reader()
+
                 def arrived(frames0: int = frames0) -> bool:
                     return self._decoder.stats.frames > frames0 or self._error is not None
 
@@ -213,8 +210,7 @@ class Imu:
                 if ok:
                     self.reconnects += 1
                     return attempts
-                self._stop.set()
-                self._thread.join(timeout=2.0)
+                self._stop_reader()
                 with contextlib.suppress(Exception):
                     self._t.close()
             if time.monotonic() + backoff_s > deadline:
@@ -234,59 +230,34 @@ class Imu:
         with self._cond:
             return list(self._stalls)
 
-    def _reader(self) -> None:
-        last_data = time.monotonic()
-        empty = False
-        while not self._stop.is_set():
-            try:
-                data = self._t.read_available()
-            except BaseException as exc:  # noqa: BLE001 - handed to the reading thread
-                with self._cond:
-                    self._error = exc
-                    self._cond.notify_all()
-                return
-            now = time.monotonic()
-            if not data:
-                empty = True
-                continue
-            paused = empty and now - last_data >= self.stall_s
-            last_data, empty = now, False
-            with self._cond:
-                if paused and not self._config_mode and self._decoder.stats.frames:
-                    self._mark_stall = True
-                if self._config_mode:
-                    self._text += data
-                out = self._decoder.feed(data)
-                if len(out) and self._mark_stall:
-                    self._stalls.append(int(out.sample_index[0]))
-                    self._mark_stall = False
-                if len(out):
-                    index, frames = out.sample_index, out.frames
-                    if self._discard_next:
-                        k = min(self._discard_next, len(index))
-                        self._discard_next -= k
-                        self._decoder.stats.discarded_frames += k
-                        index, frames = index[k:], frames[k:]
-                    if len(index):
-                        self._pending.append((index, frames))
-                        self._pending_n += len(index)
-                self._cond.notify_all()
+    def _on_bytes(self, data: bytes, idle_s: float) -> None:
+        if idle_s >= self.stall_s and not self._config_mode and self._decoder.stats.frames:
+            self._mark_stall = True
+        if self._config_mode:
+            self._text += data
+        out = self._decoder.feed(data)
+        if len(out) and self._mark_stall:
+            self._stalls.append(int(out.sample_index[0]))
+            self._mark_stall = False
+        if len(out):
+            index, frames = out.sample_index, out.frames
+            if self._discard_next:
+                k = min(self._discard_next, len(index))
+                self._discard_next -= k
+                self._decoder.stats.discarded_frames += k
+                index, frames = index[k:], frames[k:]
+            if len(index):
+                self._pending.append((index, frames))
+                self._pending_n += len(index)
 
     def _wait_for_first_frame(self) -> None:
-        deadline = time.monotonic() + self.timeout_s
         with self._cond:
-            while self._decoder.stats.frames == 0:
-                if self._error is not None:
-                    raise self._error
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    got = self._decoder.stats.bytes
-                    raise DeviceError(
-                        DEVICE, self.port,
-                        f"no KVH format-A data on {self.port} within {self.timeout_s:g} s ({got} bytes of "
-                        "something else) — is it the IMU's port?"
-                    )
-                self._cond.wait(remaining)
+            self._wait_locked(
+                lambda: self._decoder.stats.frames > 0,
+                self.timeout_s,
+                lambda: f"no KVH format-A data on {self.port} within {self.timeout_s:g} s "
+                f"({self._decoder.stats.bytes} bytes of something else) — is it the IMU's port?",
+            )
 
     # -- samples -----------------------------------------------------------------------------
     def read(self, n_samples: int, timeout_s: float | None = None) -> ImuBlock:
@@ -295,19 +266,13 @@ class Imu:
         if n < 1:
             raise ValueError("n_samples must be >= 1")
         wait_s = self.timeout_s + n / self.rate_hz if timeout_s is None else float(timeout_s)
-        deadline = time.monotonic() + wait_s
         with self._cond:
-            while self._pending_n < n:
-                if self._error is not None:
-                    raise self._error
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise DeviceError(
-                        DEVICE, self.port,
-                        f"only {self._pending_n} of {n} samples arrived within {wait_s:g} s on {self.port} "
-                        "— is the IMU still streaming (cable, rate, not left in config mode)?"
-                    )
-                self._cond.wait(remaining)
+            self._wait_locked(
+                lambda: self._pending_n >= n,
+                wait_s,
+                lambda: f"only {self._pending_n} of {n} samples arrived within {wait_s:g} s on {self.port} "
+                "— is the IMU still streaming (cable, rate, not left in config mode)?",
+            )
             taken, got = [], 0
             while got < n:  # only the chunks needed: a long backlog is not copied on every read
                 index, frames = self._pending.pop(0)
@@ -336,21 +301,24 @@ class Imu:
 
     # -- configuration -----------------------------------------------------------------------
     def _await_reply(self, key: str, timeout_s: float) -> str:
-        deadline = time.monotonic() + timeout_s
+        found: list[tuple[str, int]] = []
+
+        def answered() -> bool:
+            reply = kvh.find_config_reply(bytes(self._text), key)
+            if reply is not None:
+                found.append(reply)
+            return reply is not None
+
         with self._cond:
-            while True:
-                found = kvh.find_config_reply(bytes(self._text), key)
-                if found is not None:
-                    value, end = found
-                    del self._text[:end]
-                    return value
-                if self._error is not None:
-                    raise self._error
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise DeviceError(DEVICE, self.port, f"no answer to ?{key} on {self.port} within "
-                                      f"{timeout_s:g} s — is it a KVH IMU in format A on this port?")
-                self._cond.wait(remaining)
+            self._wait_locked(
+                answered,
+                timeout_s,
+                lambda: f"no answer to ?{key} on {self.port} within {timeout_s:g} s — is it a KVH IMU "
+                "in format A on this port?",
+            )
+            value, end = found[0]
+            del self._text[:end]
+            return value
 
     def _enter_config(self) -> None:
         with self._cond:
@@ -446,18 +414,9 @@ class Imu:
     # -- lifetime ----------------------------------------------------------------------------
     def close(self) -> None:
         """Stop the reader thread and close the port (and the raw log if the driver opened it)."""
-        self._stop.set()
-        if self._thread.is_alive() and self._thread is not threading.current_thread():
-            self._thread.join(timeout=2.0)
-        self._t.close()
+        super().close()
         if self._own_raw and self._raw_log is not None and not self._raw_log.closed:
             self._raw_log.close()
-
-    def __enter__(self) -> Imu:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"Imu({self.port!r}, rate_hz={self.rate_hz:g}, {self.rot_format}/{self.rot_units})"
