@@ -42,8 +42,12 @@ def test_golden_frames_over_a_real_pty(pty_pair, golden):
         write_all(master, b"".join(msgs))
         block = imu.read(3, timeout_s=5)
     for k, v in enumerate(golden["kvh_format_a"]):
-        assert block.gyro_rad_s[k].tolist() == [g * (np.pi / 180) for g in v["gyro_f32"]]
-        assert block.accel_g[k].tolist() == v["accel_f32"]
+        # a field whose status bit is cleared (PROTOCOLS.md §2) is NaN: left out, never averaged
+        bits = [(v["status"] >> b) & 1 for b in (0, 1, 2, 4, 5, 6)]
+        gyro = [g * (np.pi / 180) if ok else None for g, ok in zip(v["gyro_f32"], bits[:3], strict=True)]
+        accel = [a if ok else None for a, ok in zip(v["accel_f32"], bits[3:], strict=True)]
+        assert [None if np.isnan(x) else x for x in block.gyro_rad_s[k].tolist()] == gyro
+        assert [None if np.isnan(x) else x for x in block.accel_g[k].tolist()] == accel
         assert block.status[k] == v["status"] and block.temperature_c[k] == v["temperature_c"]
     # sequence 42 → 127 → 0: steps of 85 and 1 → indices 0, 85, 86 with 84 lost inside the block
     assert block.sample_index.tolist() == [0, 85, 86]

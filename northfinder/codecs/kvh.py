@@ -25,7 +25,9 @@ __all__ = [
     "RATES_HZ",
     "ROT_FORMATS",
     "ROT_UNITS",
+    "AXIS_NAMES",
     "DecodedFrames",
+    "ImuAxes",
     "ImuStats",
     "KvhDecoder",
     "crc32_mpeg2",
@@ -37,6 +39,7 @@ __all__ = [
     "find_config_replies",
     "gyro_scale_to_rad_s",
     "parse_config_reply",
+    "valid_mask",
 ]
 
 HEADER = b"\xfe\x81\xff\x55"
@@ -58,6 +61,49 @@ FRAME_DTYPE = np.dtype(
     ]
 )
 assert FRAME_DTYPE.itemsize == FRAME_SIZE
+
+AXIS_NAMES = ("gx", "gy", "gz", "ax", "ay", "az")
+"""The six measured axes in field order; their status bits are 0, 1, 2 (gyro) and 4, 5, 6 (accel)."""
+_STATUS_BITS = np.array([0, 1, 2, 4, 5, 6], dtype=np.uint8)
+AXES_LEARN_FRAMES = 64
+"""Frames whose status bits decide which axes the unit has (PROTOCOLS.md §2): an axis exists when its
+bit is set in at least half of them, so a unit that flags a frame now and then keeps its axes."""
+
+
+def valid_mask(status: np.ndarray) -> np.ndarray:
+    """Status bytes [n] → bool [n, 6]: each axis's valid bit (gyro x y z, accel x y z)."""
+    st = np.asarray(status, dtype=np.uint8)
+    return ((st[:, None] >> _STATUS_BITS[None, :]) & 1).astype(bool)
+
+
+@dataclass(frozen=True)
+class ImuAxes:
+    """Which axes a unit has, learned from its status bits: six booleans in AXIS_NAMES order."""
+
+    present: tuple[bool, bool, bool, bool, bool, bool]
+
+    @classmethod
+    def from_status(cls, status: np.ndarray) -> ImuAxes:
+        """Axes whose valid bit is set in at least half of the given frames."""
+        mask = valid_mask(status)
+        return cls(tuple(bool(2 * c >= len(mask)) for c in mask.sum(axis=0)))  # type: ignore[arg-type]
+
+    @property
+    def gyro(self) -> str:
+        """The gyro axes, e.g. "y" or "xyz"."""
+        return "".join(a for a, p in zip("xyz", self.present[:3], strict=True) if p)
+
+    @property
+    def accel(self) -> str:
+        """The accelerometer axes, e.g. "" or "xyz"."""
+        return "".join(a for a, p in zip("xyz", self.present[3:], strict=True) if p)
+
+    def describe(self) -> str:
+        """"gyro y only", "gyro x y z, no accel", "gyro x y z, accel x y z"."""
+        g = " ".join(self.gyro) or "none"
+        if not self.accel:
+            return f"gyro {g} only" if len(self.gyro) == 1 else f"gyro {g}, no accel"
+        return f"gyro {g}, accel {' '.join(self.accel)}"
 
 # --------------------------------------------------------------------------------------------
 # CRC-32/MPEG-2: poly 0x04C11DB7, init 0xFFFFFFFF, no reflection, no final xor.
@@ -191,6 +237,20 @@ class ImuStats:
     bytes: int = 0
     skipped_bytes: int = 0
     discarded_frames: int = 0
+    invalid_gx: int = 0
+    invalid_gy: int = 0
+    invalid_gz: int = 0
+    invalid_ax: int = 0
+    invalid_ay: int = 0
+    invalid_az: int = 0
+    """Frames whose valid bit is cleared, per axis the unit has (counted once its axes are known)."""
+
+    def invalid_samples(self, axes: ImuAxes | None) -> dict[str, int]:
+        """{axis: frames flagged not valid} for the axes the unit has."""
+        if axes is None:
+            return {}
+        names = [a for a, p in zip(AXIS_NAMES, axes.present, strict=True) if p]
+        return {a: int(getattr(self, f"invalid_{a}")) for a in names}
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -238,6 +298,9 @@ class KvhDecoder:
         self._skipped_pending = False
         self._last_sequence: int | None = None
         self._last_index = -1
+        self._learn_status: list[np.ndarray] = []
+        self.axes: ImuAxes | None = None
+        """The unit's axes, from the status bits of the first AXES_LEARN_FRAMES frames (None before)."""
 
     @property
     def pending_bytes(self) -> int:
@@ -319,4 +382,20 @@ class KvhDecoder:
         self.stats.lost_samples += lost
         self._last_sequence = int(seq[-1])
         self._last_index = int(index[-1])
+        self._count_invalid(frames["status"])
         return DecodedFrames(index, frames, lost)
+
+    def _count_invalid(self, status: np.ndarray) -> None:
+        """Learn the axes from the first frames' status bits, then count cleared bits per axis."""
+        if self.axes is None:
+            self._learn_status.append(np.array(status, dtype=np.uint8))
+            seen = np.concatenate(self._learn_status)
+            if len(seen) < AXES_LEARN_FRAMES:
+                return
+            self.axes = ImuAxes.from_status(seen[:AXES_LEARN_FRAMES])
+            self._learn_status = []
+            status = seen
+        cleared = (~valid_mask(status)).sum(axis=0)
+        for name, present, n in zip(AXIS_NAMES, self.axes.present, cleared.tolist(), strict=True):
+            if present:
+                setattr(self.stats, f"invalid_{name}", getattr(self.stats, f"invalid_{name}") + n)

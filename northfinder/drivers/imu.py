@@ -46,15 +46,23 @@ INVALID_AFTER_RATE_CHANGE = 2  # PROTOCOLS.md §2: the next 2 messages after =DR
 
 @dataclass(frozen=True)
 class ImuBlock:
-    """Consecutive decoded samples. `lost_samples` counts gaps inside the block."""
+    """Consecutive decoded samples. `lost_samples` counts gaps inside the block.
+
+    A field whose status bit is cleared (PROTOCOLS.md §2: not valid, or an axis the unit does not
+    have) is NaN in `gyro_rad_s` / `accel_g`, so it is excluded from every mean, never averaged."""
 
     sample_index: np.ndarray  # int64 [n], device sample count
-    gyro_rad_s: np.ndarray  # float64 [n, 3]
-    accel_g: np.ndarray  # float64 [n, 3]
+    gyro_rad_s: np.ndarray  # float64 [n, 3], NaN where not valid
+    accel_g: np.ndarray  # float64 [n, 3], NaN where not valid
     status: np.ndarray  # uint8 [n]
     temperature_c: np.ndarray  # float64 [n]
     lost_samples: int
     rate_hz: float
+
+    @property
+    def valid(self) -> np.ndarray:
+        """bool [n, 6]: each axis's valid bit (gyro x y z, accel x y z)."""
+        return kvh.valid_mask(self.status)
 
     @property
     def time_s(self) -> np.ndarray:
@@ -71,10 +79,11 @@ def frames_to_block(sample_index: np.ndarray, frames: np.ndarray, rate_hz: float
     scale = kvh.gyro_scale_to_rad_s(rate_hz, rot_format, rot_units)
     index = np.asarray(sample_index, dtype=np.int64)
     lost = int(index[-1] - index[0] + 1 - len(index)) if len(index) else 0
+    valid = kvh.valid_mask(frames["status"])
     return ImuBlock(
         sample_index=index,
-        gyro_rad_s=frames["gyro"].astype(np.float64) * scale,
-        accel_g=frames["accel"].astype(np.float64),
+        gyro_rad_s=np.where(valid[:, :3], frames["gyro"].astype(np.float64) * scale, np.nan),
+        accel_g=np.where(valid[:, 3:], frames["accel"].astype(np.float64), np.nan),
         status=frames["status"].astype(np.uint8),
         temperature_c=frames["temperature"].astype(np.float64),
         lost_samples=lost,
@@ -84,7 +93,8 @@ def frames_to_block(sample_index: np.ndarray, frames: np.ndarray, rate_hz: float
 
 def decode_imu_stream(raw: bytes, rate_hz: float = 1000.0, rot_format: str = "DELTA",
                       rot_units: str = "RAD") -> tuple[ImuBlock, ImuStats]:
-    """Decode a whole raw IMU log (replay): every good frame, and the stream's counters."""
+    """Decode a whole raw IMU log (replay): every good frame (fields flagged not valid are NaN,
+    as live), and the stream's counters."""
     decoder = KvhDecoder()
     out = decoder.feed(raw)
     return frames_to_block(out.sample_index, out.frames, rate_hz, rot_format, rot_units), decoder.stats
@@ -115,10 +125,12 @@ class Imu(StreamReader):
         rot_units: str = "RAD",
         wait_for_data: bool = True,
         transport: _ByteTransport | None = None,
-        stall_s: float = 0.1,
+        link_timeout_s: float = 1.0,
     ) -> None:
-        """`stall_s`: host seconds without a byte (while streaming) that count as a pause of the
-        stream (see :attr:`stall_indices`); a 1 kHz IMU never pauses that long."""
+        """`link_timeout_s`: host seconds without a byte (while streaming) after which the stream
+        counts as paused (see :attr:`stall_indices`). Generous on purpose: a USB-serial adapter may
+        hold bytes back for a few hundred ms and then burst them, which loses nothing (the
+        sequence counter decides that); only a silence this long can hide 128·k lost samples."""
         self.port = port
         self.timeout_s = float(timeout_s)
         self.rate_hz = float(rate_hz)
@@ -136,7 +148,7 @@ class Imu(StreamReader):
             raw_log = open(raw_log, "wb")  # noqa: SIM115 - closed in close()
         self._raw_log = raw_log
         self.reconnects = 0
-        self.stall_s = float(stall_s)
+        self.link_timeout_s = float(link_timeout_s)
         self._stalls: list[int] = []
         self._mark_stall = False
         try:
@@ -224,14 +236,14 @@ class Imu(StreamReader):
     @property
     def stall_indices(self) -> list[int]:
         """Device sample index of the first frame after each pause of the stream (no byte for
-        `stall_s` host seconds outside config mode, or a reconnect). A pause longer than 128
+        `link_timeout_s` host seconds outside config mode, or a reconnect). A pause longer than 128
         samples cannot be counted from the 7-bit sequence number (it aliases), so a sample range
         that contains one of these indices has an unknown gap: the caller measures it again."""
         with self._cond:
             return list(self._stalls)
 
     def _on_bytes(self, data: bytes, idle_s: float) -> None:
-        if idle_s >= self.stall_s and not self._config_mode and self._decoder.stats.frames:
+        if idle_s >= self.link_timeout_s and not self._config_mode and self._decoder.stats.frames:
             self._mark_stall = True
         if self._config_mode:
             self._text += data
@@ -298,6 +310,25 @@ class Imu(StreamReader):
         """A snapshot of the stream counters."""
         with self._cond:
             return replace(self._decoder.stats)
+
+    @property
+    def axes(self) -> kvh.ImuAxes:
+        """The axes the unit has, from the status bits of its first frames (waits for them)."""
+        n = kvh.AXES_LEARN_FRAMES
+        with self._cond:
+            self._wait_locked(
+                lambda: self._decoder.axes is not None,
+                self.timeout_s + n / self.rate_hz,
+                lambda: f"only {self._decoder.stats.frames} of the first {n} frames arrived on {self.port} "
+                "— is the IMU still streaming?",
+            )
+            assert self._decoder.axes is not None
+            return self._decoder.axes
+
+    def invalid_samples(self) -> dict[str, int]:
+        """Frames flagged not valid so far, per axis the unit has ({} until its axes are known)."""
+        with self._cond:
+            return self._decoder.stats.invalid_samples(self._decoder.axes)
 
     # -- configuration -----------------------------------------------------------------------
     def _await_reply(self, key: str, timeout_s: float) -> str:
