@@ -31,6 +31,12 @@ class TurntableConfig:
     baudrate: int = 57600
     allow_home: bool = True
     """Home (`OR`) when the stage is NOT REFERENCED; if false such a stage is an error."""
+    speed_deg_s: float = 0.0
+    """The stage's slew speed [deg/s] (the SMC100 subset cannot ask it; `VA` is not in it). 0:
+    unknown, then moves are bounded as if the stage turned at 1 deg/s (the slowest supported)."""
+    settle_s: float = 5.0
+    """Without a gyro z, the table counts as at rest this long after READY [device s]. Default:
+    16 decay times of the 0.3 s ringing the bench shows (envelope below 1e-7 of its start)."""
 
 
 @dataclass
@@ -201,6 +207,9 @@ def _validate(cfg: BenchConfig) -> None:
     t, i, a, site, r, e = cfg.turntable, cfg.imu, cfg.accelerometer, cfg.site, cfg.run, cfg.estimator
     need(1 <= t.address <= 31, "[turntable] address", t.address, "use 1…31")
     need(t.baudrate > 0, "[turntable] baudrate", t.baudrate, "use a positive baud rate")
+    need(math.isfinite(t.speed_deg_s) and t.speed_deg_s >= 0, "[turntable] speed_deg_s", t.speed_deg_s,
+         "use the stage's speed in deg/s, or 0 when unknown")
+    need(math.isfinite(t.settle_s) and t.settle_s >= 0, "[turntable] settle_s", t.settle_s, "use 0 s or more")
     need(
         i.rate_hz in IMU_RATES_HZ,
         "[imu] rate_hz",

@@ -59,17 +59,23 @@ class PositionMeans:
     accel_samples: int
     accel_lost_samples: int
     duration_device_s: float
+    invalid_samples: dict[str, int] = field(default_factory=dict)
+    """IMU gyro samples flagged not valid (status bit cleared) and left out, per gyro axis the unit
+    has ("gx", "gy", "gz"); an axis the unit lacks has a NaN mean (None in JSON)."""
 
 
 def _column_mean_std(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # Contiguous per-axis rows: numpy's pairwise summation then runs in one fixed order whatever
     # the caller's memory layout, which is what makes live and replay means bit-identical.
+    # NaN marks a sample flagged not valid: each axis is averaged over its own valid samples.
     rows = np.ascontiguousarray(np.asarray(values, dtype=np.float64).T)
-    if rows.shape[1] == 0:
-        nan = np.full(rows.shape[0], np.nan)
-        return nan, nan
-    mean = rows.mean(axis=1)
-    std = rows.std(axis=1, ddof=1) if rows.shape[1] > 1 else np.zeros(rows.shape[0])
+    mean = np.full(rows.shape[0], np.nan)
+    std = np.full(rows.shape[0], np.nan)
+    for k, row in enumerate(rows):
+        ok = row[~np.isnan(row)]
+        if ok.size:
+            mean[k] = ok.mean()
+            std[k] = ok.std(ddof=1) if ok.size > 1 else 0.0
     return mean, std
 
 
@@ -80,13 +86,17 @@ def position_means(
     imu_lost: int,
     accel_lost: int,
     imu_rate_hz: float,
+    gyro_axes: str = "xyz",
 ) -> PositionMeans:
     """Per-position means of the gyro [deg/h] and the accelerometer [g] from decoded samples.
 
     The one function both the live run and replay call. Duration is device time: samples
-    (received and lost) over the IMU rate.
+    (received and lost) over the IMU rate. Gyro samples flagged not valid are NaN and left out;
+    they are counted per axis of `gyro_axes` (the axes the unit has, e.g. "y").
     """
     g_mean, g_std = _column_mean_std(gyro_rad_s)
+    nan_count = np.isnan(np.asarray(gyro_rad_s, dtype=np.float64)).sum(axis=0)
+    invalid = {f"g{a}": int(nan_count["xyz".index(a)]) for a in gyro_axes}
     a_mean, a_std = _column_mean_std(accel_g)
     n_imu = int(np.asarray(gyro_rad_s).shape[0])
     return PositionMeans(
@@ -100,6 +110,7 @@ def position_means(
         accel_samples=int(np.asarray(accel_g).shape[0]),
         accel_lost_samples=int(accel_lost),
         duration_device_s=(n_imu + int(imu_lost)) / float(imu_rate_hz),
+        invalid_samples=invalid,
     )
 
 
@@ -107,13 +118,16 @@ def _solve(positions: Sequence[PositionMeans], latitude_deg: float, method: str,
     from northfinder.estimators.heading import solve_heading
 
     alpha = np.array([p.table_angle_deg for p in positions])
-    gyro = np.array([p.gyro_dph for p in positions])
+    gyro = np.array([p.gyro_dph for p in positions], dtype=float)
     accel = np.array([p.accel_g for p in positions])
-    # Standard error of each position's mean from its own spread (white noise over the dwell).
-    n_gyro = np.array([max(p.samples, 1) for p in positions], dtype=float)[:, None]
+    # Standard error of each position's mean from its own spread (white noise over the dwell),
+    # over the samples each axis kept (those flagged not valid are left out).
+    kept = [[p.samples - p.invalid_samples.get(f"g{a}", 0) for a in "xyz"] for p in positions]
+    n_gyro = np.maximum(np.array(kept, dtype=float), 1.0)
     n_accel = np.array([max(p.accel_samples, 1) for p in positions], dtype=float)[:, None]
-    gyro_se = np.array([p.gyro_std_dph for p in positions]) / np.sqrt(n_gyro)
+    gyro_se = np.array([p.gyro_std_dph for p in positions], dtype=float) / np.sqrt(n_gyro)
     accel_se = np.array([p.accel_std_g for p in positions]) / np.sqrt(n_accel)
+    gyro, gyro_se = _gyro_axes_for_fit(gyro, gyro_se)
     return solve_heading(
         alpha,
         gyro,
@@ -124,6 +138,19 @@ def _solve(positions: Sequence[PositionMeans], latitude_deg: float, method: str,
         accel_std_g=accel_se,
         height_m=height_m,
     )
+
+
+def _gyro_axes_for_fit(gyro_dph: np.ndarray, gyro_se_dph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The gyro axes the unit has (finite at every position), shaped as solve_heading takes them:
+    (n,) for a single gyro on y (the seed paper's), (n, 2) for x and y, (n, 3) for x y z."""
+    has = np.all(np.isfinite(gyro_dph), axis=0)
+    if has[0] and has[1]:
+        cols = [0, 1, 2] if has[2] else [0, 1]
+        return gyro_dph[:, cols], gyro_se_dph[:, cols]
+    if has[1]:
+        return gyro_dph[:, 1], gyro_se_dph[:, 1]
+    axes = "".join(a for a, h in zip("xyz", has, strict=True) if h) or "none"
+    raise InputError(f"the IMU's gyro axes ({axes}) cannot find north: it needs gyro y, or x and y")
 
 
 def compute_result(
@@ -287,6 +314,14 @@ def faults_summary(events: Sequence[dict[str, Any]]) -> dict[str, Any]:
     imu["reconnects"] = int(sum(int(e.get("imu_reconnects", 0)) for e in stats))
     imu["stalls"] = int(sum(int(e.get("imu_stalls", 0)) for e in stats))
     imu["lost_in_dwells"] = int(sum(int(e["imu"]["lost"]) for e in kept))
+    axes = next((str(e["imu_axes"]) for e in stats if "imu_axes" in e), "xyz")
+    imu["gyro_axes"] = axes
+    imu["invalid_samples"] = {
+        f"{kind}{a}": int(sum(int(e.get("imu", {}).get(f"invalid_{kind}{a}", 0)) for e in stats))
+        for kind in ("g", "a") for a in "xyz"
+        if any(f"invalid_{kind}{a}" in e.get("imu", {}) for e in stats) and (kind == "a" or a in axes)
+    }
+    imu["invalid_in_dwells"] = int(sum(sum(e["imu"].get("invalid", {}).values()) for e in kept))
     accel: dict[str, Any] = {
         k: int(sum(int(e.get("accel", {}).get(k, 0)) for e in stats)) for k in _ACCEL_COUNTERS
     }
@@ -406,6 +441,7 @@ def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
                 ev["imu"]["lost"],
                 ev["accel"]["lost"],
                 imu_cfg["rate_hz"],
+                ev["imu"].get("gyro_axes", "xyz"),
             )
         )
     planned = int(start.get("positions_planned", len(pos_events)))

@@ -44,6 +44,9 @@ class _Turntable(Protocol):  # the parts of northfinder.drivers.turntable.Turnta
 
 MIN_VISIBLE_MOVE_DEG = 0.5
 """Moves at least this long are expected to show in the gyro z before settling is judged."""
+SLOWEST_STAGE_DEG_S = 1.0
+"""The stage speed assumed when [turntable] speed_deg_s is not given: bounds of a move are taken
+as for the slowest table supported, so a several-minute move at 1 deg/s still works."""
 
 
 class Interrupted(Exception):
@@ -95,6 +98,17 @@ def disturbance_z(samples: np.ndarray, window: int, floor: float = 0.0) -> tuple
     z = np.abs(means - np.median(means, axis=0)) / (np.maximum(sigma, 1e-300) / np.sqrt(window))
     j = int(np.argmax(z.max(axis=1)))
     return float(z[j].max()), j
+
+
+def _disturbance_valid(samples: np.ndarray, window: int) -> tuple[float, int]:
+    """:func:`disturbance_z` over the columns that have valid samples, each on its own valid samples
+    (NaN = flagged not valid, or an axis the unit lacks); the window index is of that column."""
+    best = (0.0, -1)
+    for col in np.asarray(samples, dtype=np.float64).T:
+        ok = col[np.isfinite(col)]
+        if ok.size:
+            best = max(best, disturbance_z(ok, window))
+    return best
 
 
 @dataclass
@@ -200,13 +214,19 @@ class Sequencer:
         disturbance_window_s: float = 0.1,
         reconnect_timeout_s: float = 10.0,
         skip: set[int] | frozenset[int] = frozenset(),
+        stage_speed_deg_s: float = 0.0,
+        stage_settle_s: float = 5.0,
+        dwell_grid_s: float = 1.0,
     ):
         """`read_timeout_s`: host seconds a read may wait beyond the samples' own duration;
         `max_attempts`: measurements of one position before the run stops; a dwell is measured
         again when the IMU stream has a gap longer than `imu_max_gap_s` (device time) or loses
         more than `max_lost_fraction` of its samples, the accelerometer loses more than
         `accel_max_lost_fraction`, or a disturbance shows (DISTURBANCE_Z); `skip`: plan indices
-        already measured (--resume)."""
+        already measured (--resume); `stage_speed_deg_s` ([turntable] speed_deg_s, 0 unknown) bounds
+        each move (host timeout) and its settle (device time); `stage_settle_s` ([turntable] settle_s)
+        is the rest after READY of a unit without a gyro z; `dwell_grid_s`: a dwell starts on a
+        multiple of this many device seconds of IMU samples (so it does not depend on host timing)."""
         self.turntable = turntable
         self.imu = imu
         self.accel = accelerometer
@@ -227,6 +247,10 @@ class Sequencer:
         self.disturbance_window_s = float(disturbance_window_s)
         self.reconnect_timeout_s = float(reconnect_timeout_s)
         self.skip = frozenset(int(k) for k in skip)
+        self.stage_speed_deg_s = float(stage_speed_deg_s)
+        self.stage_settle_s = float(stage_settle_s)
+        self.dwell_grid_s = float(dwell_grid_s)
+        self._move_deg = 0.0
         self.positions: list[PositionMeans] = []
         self._plan: list[float] = []
 
@@ -276,9 +300,17 @@ class Sequencer:
             plan.append(shifted)
         return plan
 
-    def _poll_ready(self, what: str) -> None:
-        """Poll TS until READY (checking the stop flag); StageError naming state and letter."""
-        deadline = time.monotonic() + self.move_timeout_s
+    def _move_duration_s(self, move_deg: float) -> float:
+        """An upper bound of a move's duration [s] from its length and the stage's speed (the slowest
+        supported when unknown), with its acceleration ramps (at most a second at 1 deg/s)."""
+        speed = self.stage_speed_deg_s if self.stage_speed_deg_s > 0 else SLOWEST_STAGE_DEG_S
+        return abs(move_deg) / speed + 2.0
+
+    def _poll_ready(self, what: str, move_deg: float = 0.0) -> None:
+        """Poll TS until READY (checking the stop flag); StageError naming state and letter. The
+        host time-out is move_timeout_s, or twice the move's bound when that is longer."""
+        timeout_s = max(self.move_timeout_s, 2.0 * self._move_duration_s(move_deg))
+        deadline = time.monotonic() + timeout_s
         while True:
             self._check_stop()
             st = self.turntable.status()
@@ -291,14 +323,14 @@ class Sequencer:
                 raise DeviceError(
                     "turntable",
                     getattr(self.turntable, "port", None),
-                    f"not READY {self.move_timeout_s:g} s after {what} "
+                    f"not READY {timeout_s:g} s after {what} "
                     f"(state {st.state_name}) — check the stage's speed and load",
                 )
             time.sleep(self.poll_s)
 
     def _move_once(self, target_deg: float) -> None:
         self.turntable.move_absolute_deg(target_deg, wait=False)
-        self._poll_ready(f"the move to {target_deg:g}°")
+        self._poll_ready(f"the move to {target_deg:g}°", self._move_deg)
 
     def _move(self, target_deg: float) -> None:
         """Move and wait for READY. A stage error (following error / stall → DISABLE) is logged,
@@ -355,20 +387,49 @@ class Sequencer:
         wait_s = 2.0 * n / self.imu.rate_hz + self.read_timeout_s
         return self.imu.read(n, timeout_s=max(self.read_timeout_s, wait_s))
 
-    def settle(self, expect_motion: bool = True) -> SettleResult:
-        """Read gyro-z windows (device time) from the move command on: first until the slew shows
-        (|mean| above settle_rest_dph; samples that arrive late still show the table at rest
-        before the move), then until the ringing has died out, at most settle_max_s after that."""
+    def _has_gyro_z(self) -> bool:
+        """Whether the unit has a gyro z (status bits); drivers without `axes` are assumed to."""
+        axes = getattr(self.imu, "axes", None)
+        return axes is None or "z" in axes.gyro
+
+    def _gyro_axes(self) -> str:
+        axes = getattr(self.imu, "axes", None)
+        return "xyz" if axes is None else axes.gyro
+
+    def _align_to_grid(self, n_grid: int) -> None:
+        """Read (and drop) samples until the next one's device index is a multiple of `n_grid`, so
+        that windows and dwells lie on a fixed sample grid whatever the host's timing."""
+        first = self._read_imu(1)
+        k = (-(int(first.sample_index[-1]) + 1)) % n_grid
+        if k:
+            self._read_imu(k)
+
+    def settle(self, expect_motion: bool = True, move_deg: float | None = None) -> SettleResult:
+        """Wait (in device time) until the table is at rest after a move; called after READY.
+
+        With a gyro z: windows on a fixed sample grid from the move command on, first until the
+        slew shows (|mean| above settle_rest_dph), then until the ringing has died out
+        (:func:`settle_reached`), at most the move's own bound (length over the stage's speed) plus
+        settle_max_s after the slew showed. Without one (a single-axis or x-y unit): the stage's
+        READY, then [turntable] settle_s of samples (those before READY were dropped)."""
         cfg = self.run_cfg
         rate = float(self.imu.rate_hz)
         n_win = max(2, int(round(cfg.settle_window_s * rate)))
-        max_windows = max(1, int(np.ceil(cfg.settle_max_s * rate / n_win)))
+        if not self._has_gyro_z():
+            self.imu.discard_pending()  # READY has been seen: what arrived so far may be older
+            n_settle = int(round(self.stage_settle_s * rate))
+            if n_settle:
+                self._read_imu(n_settle)
+            return SettleResult(n_settle / rate, True, 0)
+        move_s = self._move_duration_s(self._move_deg if move_deg is None else move_deg)
+        max_windows = max(1, int(np.ceil((cfg.settle_max_s + move_s) * rate / n_win)))
         min_windows = int(np.ceil(cfg.settle_min_s * rate / n_win))
+        self._align_to_grid(n_win)
         if expect_motion:
-            for _ in range(int(np.ceil(self.move_timeout_s * rate / n_win))):
+            for _ in range(int(np.ceil(2.0 * move_s * rate / n_win))):
                 self._check_stop()
                 z = np.asarray(self._read_imu(n_win).gyro_rad_s)[:, 2] / DPH
-                if abs(float(np.mean(z))) > cfg.settle_rest_dph:
+                if abs(float(np.nanmean(z))) > cfg.settle_rest_dph:
                     break
             else:
                 raise DeviceError(
@@ -380,7 +441,8 @@ class Sequencer:
         windows: list[np.ndarray] = []
         for k in range(1, max_windows + 1):
             self._check_stop()
-            windows.append(np.asarray(self._read_imu(n_win).gyro_rad_s)[:, 2] / DPH)
+            z = np.asarray(self._read_imu(n_win).gyro_rad_s)[:, 2] / DPH
+            windows.append(z[np.isfinite(z)])
             if k >= min_windows and settle_reached(windows[-2:], cfg.settle_ratio, cfg.settle_rest_dph):
                 return SettleResult(k * n_win / rate, True, k)
         return SettleResult(max_windows * n_win / rate, False, max_windows)
@@ -420,20 +482,27 @@ class Sequencer:
         rate = float(self.imu.rate_hz)
         n_total = max(2, int(round(cfg.dwell_s * rate)))
         n_chunk = max(1, int(round(self.chunk_s * rate)))
+        n_grid = int(round(self.dwell_grid_s * rate))
+        if n_grid > 1:
+            self._align_to_grid(n_grid)
         blocks = []
         got = 0
         s1 = np.zeros(3)
         s2 = np.zeros(3)
+        n_ok = np.zeros(3)
         while got < n_total:
             self._check_stop()
             block = self._read_imu(min(n_chunk, n_total - got))
             blocks.append(block)
             g = np.asarray(block.gyro_rad_s) / DPH
             got += g.shape[0]
-            s1 += g.sum(axis=0)
-            s2 += (g**2).sum(axis=0)
-            mean = s1 / got
-            var = np.maximum(s2 / got - mean**2, 0.0)
+            ok = np.isfinite(g)  # samples flagged not valid are NaN: left out
+            n_ok += ok.sum(axis=0)
+            s1 += np.where(ok, g, 0.0).sum(axis=0)
+            s2 += (np.where(ok, g, 0.0) ** 2).sum(axis=0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                mean = s1 / n_ok
+                var = np.maximum(s2 / n_ok - mean**2, 0.0)
             self.on_progress(
                 Progress(
                     index + 1,
@@ -443,7 +512,7 @@ class Sequencer:
                     dwell_done_s=got / rate,
                     dwell_s=cfg.dwell_s,
                     gyro_mean_dph=mean.tolist(),
-                    gyro_std_of_mean_dph=np.sqrt(var / got).tolist(),
+                    gyro_std_of_mean_dph=np.sqrt(var / np.maximum(n_ok, 1)).tolist(),
                 )
             )
         self._check_stop()
@@ -488,6 +557,7 @@ class Sequencer:
             self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
             try:
                 here = float(self.turntable.position_deg())
+                self._move_deg = target - here
                 self.accel.stop_node()  # quiet during the move; started again after the settle
                 self.imu.discard_pending()  # what is left is from before the move command
                 self._move(target)
@@ -576,16 +646,17 @@ class Sequencer:
             out.append(f"imu gap of {gap} samples ({gap / rate:.3f} s device time) inside the dwell")
         elif lost > self.max_lost_fraction * idx.size:
             out.append(f"imu lost {lost} of {lost + idx.size} samples")
+        gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0) / DPH
+        imu_acc = np.concatenate([np.asarray(b.accel_g) for b in blocks], axis=0)
+        out += self._invalid_problems(gyro, idx.size)
         counter = np.asarray(accel_block.counter)
         a_lost = int(accel_block.lost_samples)
         if a_lost > self.accel_max_lost_fraction * max(counter.size, 1):
             out.append(f"accelerometer lost {a_lost} of {a_lost + counter.size} samples (too few)")
         if out:
             return out
-        gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0) / DPH
-        imu_acc = np.concatenate([np.asarray(b.accel_g) for b in blocks], axis=0)
         w = max(10, int(round(self.disturbance_window_s * rate)))
-        z, j = disturbance_z(np.hstack([gyro, imu_acc]), w)
+        z, j = _disturbance_valid(np.hstack([gyro, imu_acc]), w)
         wa = max(5, int(round(2.0 * self.disturbance_window_s * self.accel_rate_hz)))
         za, ja = disturbance_z(np.asarray(accel_block.accel_g), wa, floor=1e-6 / np.sqrt(12.0))
         if z > DISTURBANCE_Z:
@@ -598,6 +669,16 @@ class Sequencer:
                 f"disturbance: accelerometer window {ja} ({ja * wa / self.accel_rate_hz:.2f} s into "
                 f"its dwell) is {za:.1f} σ off"
             )
+        return out
+
+    def _invalid_problems(self, gyro_dph: np.ndarray, n: int) -> list[str]:
+        """Too many samples flagged not valid on a gyro axis the fit needs: measured again like a
+        dwell that lost them."""
+        out = []
+        for a in self._gyro_axes():
+            bad = int(np.count_nonzero(np.isnan(gyro_dph[:, "xyz".index(a)])))
+            if bad > self.max_lost_fraction * n:
+                out.append(f"imu gyro {a}: {bad} of {n} samples flagged not valid (status bit cleared)")
         return out
 
     def log_stats(self) -> None:
@@ -618,6 +699,7 @@ class Sequencer:
                 "imu": imu_stats.as_dict() if hasattr(imu_stats, "as_dict") else dict(vars(imu_stats)),
                 "imu_reconnects": int(getattr(self.imu, "reconnects", 0)),
                 "imu_stalls": len(getattr(self.imu, "stall_indices", [])),
+                "imu_axes": self._gyro_axes(),
                 "accel": acc_stats.as_dict() if hasattr(acc_stats, "as_dict") else dict(vars(acc_stats)),
                 "emergencies": emcy,
             }
@@ -653,8 +735,10 @@ class Sequencer:
         counter = np.asarray(accel_block.counter)
         imu_lost = int(idx[-1] - idx[0] + 1 - idx.size)
         accel_lost = int(accel_block.lost_samples)
+        axes = self._gyro_axes()
         means = position_means(
-            angle_deg, gyro, np.asarray(accel_block.accel_g), imu_lost, accel_lost, float(self.imu.rate_hz)
+            angle_deg, gyro, np.asarray(accel_block.accel_g), imu_lost, accel_lost, float(self.imu.rate_hz),
+            axes,
         )
         self.positions.append(means)
         self._event(
@@ -669,6 +753,8 @@ class Sequencer:
                     "last_index": int(idx[-1]),
                     "samples": int(idx.size),
                     "lost": imu_lost,
+                    "gyro_axes": axes,
+                    "invalid": means.invalid_samples,
                 },
                 "accel": {
                     "first_counter": int(counter[0]),

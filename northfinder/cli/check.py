@@ -45,10 +45,15 @@ def probe_imu(cfg: bench.BenchConfig) -> str:
         fmt = imu.query("ROTFMT")
         units = imu.query("ROTUNITS")
         block = imu.read(max(2, int(imu.rate_hz // 10)), timeout_s=3.0)
+        axes = imu.axes
         stats = imu.stats
+        if "y" not in axes.gyro:
+            raise DeviceError("imu", i.port, f"{axes.describe()} (status bits): north finding needs a "
+                              "gyro y, or x and y — is it the right unit, mounted y along the table plane?")
+        settle = "settles by gyro z" if "z" in axes.gyro else "no gyro z: READY + [turntable] settle_s"
         return (
-            f"imu on {i.port}: {rate} Hz, format A, {fmt} {units}; {len(block.sample_index)} samples read, "
-            f"{stats.bad_crc} bad CRC, {stats.lost_samples} lost"
+            f"imu on {i.port}: {rate} Hz, format A, {fmt} {units}; {axes.describe()} ({settle}); "
+            f"{len(block.sample_index)} samples read, {stats.bad_crc} bad CRC, {stats.lost_samples} lost"
         )
 
 

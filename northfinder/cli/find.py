@@ -21,6 +21,7 @@ from typing import Any
 
 from northfinder import config as bench
 from northfinder.errors import DeviceError, InputError, RunAborted
+from northfinder.history import record_or_warn
 from northfinder.rundir import CONFIG, RESULT, PositionMeans, RunDir, compute_result, faults_summary
 from northfinder.sequencer import Interrupted, Progress, RunFailed, Sequencer, StopFlag
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
@@ -66,6 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", metavar="PATH", help="also write the result JSON here")
     p.add_argument("--out", metavar="RUN_DIR", help="run directory (default: runs/find-<UTC time>)")
     p.add_argument("--no-report", action="store_true", help="skip report.png")
+    p.add_argument("--unit", metavar="LABEL", help="unit under test, recorded in the results history")
     sim = p.add_argument_group("simulation (with --simulate; passed on to firmware-sim)")
     d = SimSettings()
     sim.add_argument("--heading", type=float, default=d.heading_deg, metavar="DEG", help="true heading")
@@ -347,6 +349,16 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
         console.print(f"run directory: {run_dir}")
 
 
+def _invalid_lines(imu: dict[str, Any]) -> list[str]:
+    """The IMU samples flagged not valid per axis (status bits), if the unit flagged any."""
+    counts = imu.get("invalid_samples") or {}
+    if not any(counts.values()):
+        return []
+    each = ", ".join(f"{k} {v}" for k, v in counts.items())
+    return [f"IMU samples flagged not valid (left out): {each} in the stream "
+            f"({imu.get('invalid_in_dwells', 0)} inside kept dwells)"]
+
+
 def _print_faults(faults: dict[str, Any] | None, console: Any) -> None:
     """What went wrong and what was done: lost samples, re-measured positions, stage errors, EMCY."""
     if not faults:
@@ -358,6 +370,7 @@ def _print_faults(faults: dict[str, Any] | None, console: Any) -> None:
         f"IMU: {imu['bad_crc']} bad CRC, {imu['resyncs']} resyncs, {imu['sequence_gaps']} gaps, "
         f"{imu['lost_samples']} samples lost in the stream ({imu['lost_in_dwells']} inside kept dwells), "
         f"{imu['reconnects']} reconnects",
+        *_invalid_lines(imu),
         f"accelerometer: {acc['lost_samples']} samples lost ({acc['lost_in_dwells']} inside kept dwells), "
         f"{acc['emcy']} EMCY, heartbeats {acc['heartbeats']}",
     ]
@@ -441,6 +454,7 @@ def _measure_and_report(
             else None,
             **measure_kwargs,
         )
+    record_or_warn(rundir.path, unit=getattr(args, "unit", None))  # the results history (an index)
     if not args.no_report:
         from northfinder.report import write_report
 
@@ -565,6 +579,8 @@ def measure(
             stop_flag=stop,
             accel_rate_hz=cfg.accelerometer.rate_hz,
             skip=skip or set(),
+            stage_speed_deg_s=cfg.turntable.speed_deg_s,
+            stage_settle_s=cfg.turntable.settle_s,
             **seq_kwargs,
         )
         try:
