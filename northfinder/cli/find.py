@@ -21,7 +21,6 @@ from typing import Any
 
 from northfinder import config as bench
 from northfinder.errors import DeviceError, InputError, RunAborted
-from northfinder.history import record_or_warn
 from northfinder.rundir import CONFIG, RESULT, PositionMeans, RunDir, compute_result, faults_summary
 from northfinder.sequencer import Interrupted, Progress, RunFailed, Sequencer, StopFlag
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
@@ -67,7 +66,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", metavar="PATH", help="also write the result JSON here")
     p.add_argument("--out", metavar="RUN_DIR", help="run directory (default: runs/find-<UTC time>)")
     p.add_argument("--no-report", action="store_true", help="skip report.png")
-    p.add_argument("--unit", metavar="LABEL", help="unit under test, recorded in the results history")
     sim = p.add_argument_group("simulation (with --simulate; passed on to firmware-sim)")
     d = SimSettings()
     sim.add_argument("--heading", type=float, default=d.heading_deg, metavar="DEG", help="true heading")
@@ -454,7 +452,6 @@ def _measure_and_report(
             else None,
             **measure_kwargs,
         )
-    record_or_warn(rundir.path, unit=getattr(args, "unit", None))  # the results history (an index)
     if not args.no_report:
         from northfinder.report import write_report
 
