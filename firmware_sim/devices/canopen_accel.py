@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import struct
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -138,6 +138,254 @@ def specific_force_to_ug(
 
 
 # ---------------------------------------------------------------------------------------------
+# SDO server and object dictionary (CiA 301, docs/PROTOCOLS.md §3.1), device side
+# ---------------------------------------------------------------------------------------------
+SDO_RX_BASE = 0x600  # client -> server
+SDO_TX_BASE = 0x580  # server -> client
+
+ABORT_TOGGLE = 0x05030000
+ABORT_COMMAND = 0x05040001
+ABORT_WRITE_ONLY = 0x06010001
+ABORT_READ_ONLY = 0x06010002
+ABORT_NO_OBJECT = 0x06020000
+ABORT_LENGTH = 0x06070010
+ABORT_NO_SUBINDEX = 0x06090011
+ABORT_RANGE = 0x06090030
+ABORT_STATE = 0x08000022
+
+DEVICE_NAME = "NF-ACC3 accelerometer"
+SOFTWARE_VERSION = "firmware-sim 1.0"
+VENDOR_ID = 0x000004E2  # a made-up vendor of the project's reference node
+PRODUCT_CODE = 0x00ACC003
+REVISION = 0x00010000
+SERIAL_NUMBER = 0x00001010
+
+# Mapping entries: index << 16 | sub << 8 | bits (PROTOCOLS.md §3.1 defaults).
+MAPPINGS: dict[str, tuple[tuple[int, ...], tuple[int, ...]]] = {
+    "default": ((0x20000120, 0x20000220), (0x20000320, 0x20010010, 0x20020008, 0x20030008)),
+    # axes in another order and another scale (0x2004, 0.1 µg per count), other fields reordered
+    "swapped": ((0x20040320, 0x20040120), (0x20040220, 0x20030008, 0x20020008, 0x20010010)),
+}
+
+_SIZES = {"u8": 1, "u16": 2, "u32": 4, "i16": 2, "i32": 4}
+_STRUCT = {"u8": "B", "u16": "H", "u32": "I", "i16": "h", "i32": "i"}
+_NUMPY = {"u8": "u1", "u16": "<u2", "u32": "<u4", "i16": "<i2", "i32": "<i4"}
+
+
+@dataclass
+class OdEntry:
+    """One sub-object: its type, access (`ro`, `rw`, `rw-preop` = writable in pre-operational
+    only), value, and the writable range."""
+
+    kind: str  # u8 u16 u32 i16 i32 vs (visible string)
+    access: str
+    value: Any
+    low: int | None = None
+    high: int | None = None
+    mappable: bool = False
+
+    def encode(self) -> bytes:
+        if self.kind == "vs":
+            return str(self.value).encode("ascii")
+        return struct.pack("<" + _STRUCT[self.kind], int(self.value))
+
+
+def build_object_dictionary(node_id: int, mapping: str, rate_hz: float,
+                            heartbeat_ms: int = 1000) -> dict[tuple[int, int], OdEntry]:
+    """The node's object dictionary (the shipped EDS describes the `default` variant)."""
+    if mapping not in MAPPINGS:
+        raise ValueError(f"accel mapping {mapping!r}: use one of {', '.join(MAPPINGS)}")
+    t1, t2 = MAPPINGS[mapping]
+    od: dict[tuple[int, int], OdEntry] = {
+        (0x1000, 0): OdEntry("u32", "ro", 0),
+        (0x1001, 0): OdEntry("u8", "ro", 0),
+        (0x1008, 0): OdEntry("vs", "ro", DEVICE_NAME),
+        (0x100A, 0): OdEntry("vs", "ro", SOFTWARE_VERSION),
+        (0x1017, 0): OdEntry("u16", "rw", heartbeat_ms, 0, 0xFFFF),
+        (0x1018, 0): OdEntry("u8", "ro", 4),
+        (0x1018, 1): OdEntry("u32", "ro", VENDOR_ID),
+        (0x1018, 2): OdEntry("u32", "ro", PRODUCT_CODE),
+        (0x1018, 3): OdEntry("u32", "ro", REVISION),
+        (0x1018, 4): OdEntry("u32", "ro", SERIAL_NUMBER),
+        (0x2001, 0): OdEntry("i16", "ro", 0, mappable=True),
+        (0x2002, 0): OdEntry("u8", "ro", 0, mappable=True),
+        (0x2003, 0): OdEntry("u8", "ro", 0, mappable=True),
+        (0x2100, 0): OdEntry("u16", "rw-preop", int(round(rate_hz)), 1, 1000),
+    }
+    for k, (base, entries) in enumerate(((TPDO1_BASE, t1), (TPDO2_BASE, t2))):
+        od[(0x1800 + k, 0)] = OdEntry("u8", "ro", 2)
+        od[(0x1800 + k, 1)] = OdEntry("u32", "ro", base + node_id)
+        od[(0x1800 + k, 2)] = OdEntry("u8", "ro", 0xFE)
+        od[(0x1A00 + k, 0)] = OdEntry("u8", "rw-preop", len(entries), 0, 8)
+        for s in range(1, 9):
+            od[(0x1A00 + k, s)] = OdEntry("u32", "rw-preop", entries[s - 1] if s <= len(entries) else 0)
+    axes_index = 0x2004 if mapping == "swapped" else 0x2000
+    od[(axes_index, 0)] = OdEntry("u8", "ro", 3)
+    for s in (1, 2, 3):
+        od[(axes_index, s)] = OdEntry("i32", "ro", 0, mappable=True)
+    return od
+
+
+def sdo_abort(index: int, sub: int, code: int) -> bytes:
+    """Abort frame payload: 0x80, index LE, sub-index, code uint32 LE."""
+    return struct.pack("<BHBI", 0x80, index, sub, code)
+
+
+def sdo_upload_request(index: int, sub: int) -> bytes:
+    """Initiate upload (read) request payload (client side; tests and golden vectors)."""
+    return struct.pack("<BHB4x", 0x40, index, sub)
+
+
+def sdo_download_request(index: int, sub: int, data: bytes) -> bytes:
+    """Expedited download (write) request payload, 1–4 data bytes."""
+    if not 1 <= len(data) <= 4:
+        raise ValueError("an expedited download carries 1..4 bytes")
+    return struct.pack("<BHB", 0x23 | (4 - len(data)) << 2, index, sub) + bytes(data).ljust(4, b"\0")
+
+
+class _SdoAbort(Exception):
+    def __init__(self, code: int) -> None:
+        super().__init__(f"SDO abort 0x{code:08X}")
+        self.code = code
+
+
+class SdoServer:
+    """CiA 301 SDO server over an object dictionary: expedited and segmented upload, expedited and
+    segmented download, aborts. `on_write(index, sub, value)` lets the node act on (or refuse, by
+    raising ValueError) a write after the dictionary's own checks."""
+
+    def __init__(self, od: dict[tuple[int, int], OdEntry], on_write: Callable[[int, int, Any], None]) -> None:
+        self.od = od
+        self.on_write = on_write
+        self._upload: tuple[int, int, bytes, int, int] | None = None  # index, sub, data, offset, toggle
+        self._download: tuple[int, int, bytearray, int] | None = None  # index, sub, data, toggle
+
+    def handle(self, req: bytes, state: int) -> bytes:
+        """One request payload (8 bytes) in NMT `state` -> the response payload."""
+        if len(req) != 8:
+            return sdo_abort(0, 0, ABORT_COMMAND)
+        ccs = req[0] >> 5
+        index, sub = struct.unpack_from("<HB", req, 1)
+        try:
+            if ccs == 2:  # initiate upload
+                return self._initiate_upload(index, sub)
+            if ccs == 3:  # upload segment
+                return self._upload_segment(req)
+            if ccs == 1:  # initiate download
+                return self._initiate_download(req, index, sub, state)
+            if ccs == 0:  # download segment
+                return self._download_segment(req, state)
+            if ccs == 4:  # abort from the client: forget the transfer, no answer is owed
+                self._upload = self._download = None
+                return b""
+            raise _SdoAbort(ABORT_COMMAND)
+        except _SdoAbort as exc:
+            self._upload = self._download = None
+            return sdo_abort(index, sub, exc.code)
+
+    def _entry(self, index: int, sub: int) -> OdEntry:
+        if (index, sub) in self.od:
+            return self.od[(index, sub)]
+        if any(i == index for i, _ in self.od):
+            raise _SdoAbort(ABORT_NO_SUBINDEX)
+        raise _SdoAbort(ABORT_NO_OBJECT)
+
+    def _initiate_upload(self, index: int, sub: int) -> bytes:
+        data = self._entry(index, sub).encode()
+        self._upload = None
+        if len(data) <= 4:
+            return struct.pack("<BHB", 0x43 | (4 - len(data)) << 2, index, sub) + data.ljust(4, b"\0")
+        self._upload = (index, sub, data, 0, 0)
+        return struct.pack("<BHBI", 0x41, index, sub, len(data))
+
+    def _upload_segment(self, req: bytes) -> bytes:
+        if self._upload is None:
+            raise _SdoAbort(ABORT_COMMAND)
+        index, sub, data, offset, toggle = self._upload
+        if (req[0] >> 4) & 1 != toggle:
+            raise _SdoAbort(ABORT_TOGGLE)
+        chunk = data[offset : offset + 7]
+        last = offset + len(chunk) >= len(data)
+        self._upload = None if last else (index, sub, data, offset + len(chunk), toggle ^ 1)
+        return bytes((toggle << 4 | (7 - len(chunk)) << 1 | int(last),)) + chunk.ljust(7, b"\0")
+
+    def _check_writable(self, entry: OdEntry, state: int) -> None:
+        if entry.access == "ro":
+            raise _SdoAbort(ABORT_READ_ONLY)
+        if entry.access == "rw-preop" and state != STATE_PRE_OPERATIONAL:
+            raise _SdoAbort(ABORT_STATE)
+
+    def _initiate_download(self, req: bytes, index: int, sub: int, state: int) -> bytes:
+        entry = self._entry(index, sub)
+        self._check_writable(entry, state)
+        expedited, sized = bool(req[0] & 0x02), bool(req[0] & 0x01)
+        if not expedited:  # segmented: the size (if given) in bytes 4–7, data follows
+            self._download = (index, sub, bytearray(), 0)
+            return struct.pack("<BHB4x", 0x60, index, sub)
+        n = 4 - ((req[0] >> 2) & 3) if sized else _SIZES.get(entry.kind, 4)
+        self._write(index, sub, entry, bytes(req[4 : 4 + n]))
+        return struct.pack("<BHB4x", 0x60, index, sub)
+
+    def _download_segment(self, req: bytes, state: int) -> bytes:
+        if self._download is None:
+            raise _SdoAbort(ABORT_COMMAND)
+        index, sub, buf, toggle = self._download
+        if (req[0] >> 4) & 1 != toggle:
+            raise _SdoAbort(ABORT_TOGGLE)
+        buf += req[1 : 1 + 7 - ((req[0] >> 1) & 7)]
+        if req[0] & 1:  # last segment
+            self._download = None
+            entry = self._entry(index, sub)
+            self._check_writable(entry, state)
+            self._write(index, sub, entry, bytes(buf))
+        else:
+            self._download = (index, sub, buf, toggle ^ 1)
+        return bytes((0x20 | toggle << 4,)) + bytes(7)
+
+    def _write(self, index: int, sub: int, entry: OdEntry, data: bytes) -> None:
+        if entry.kind == "vs":
+            value: Any = data.decode("ascii", errors="replace")
+        else:
+            if len(data) != _SIZES[entry.kind]:
+                raise _SdoAbort(ABORT_LENGTH)
+            (value,) = struct.unpack("<" + _STRUCT[entry.kind], data)
+            low, high = entry.low, entry.high
+            if (low is not None and value < low) or (high is not None and value > high):
+                raise _SdoAbort(ABORT_RANGE)
+        try:
+            self.on_write(index, sub, value)
+        except _SdoAbort:
+            raise
+        except ValueError:
+            raise _SdoAbort(ABORT_RANGE) from None
+        entry.value = value
+
+
+def mapping_layout(od: dict[tuple[int, int], OdEntry], pdo: int) -> list[tuple[int, int, str]]:
+    """TPDO `pdo` (0 or 1) as [(index, sub, kind)] from its mapping object."""
+    count = int(od[(0x1A00 + pdo, 0)].value)
+    out = []
+    for s in range(1, count + 1):
+        entry = int(od[(0x1A00 + pdo, s)].value)
+        out.append((entry >> 16, (entry >> 8) & 0xFF, od[(entry >> 16, (entry >> 8) & 0xFF)].kind))
+    return out
+
+
+def check_mapping_entry(od: dict[tuple[int, int], OdEntry], entry: int) -> None:
+    """A mapping entry must name a mappable object with its exact bit length (else value range)."""
+    if entry == 0:
+        return
+    target = od.get((entry >> 16, (entry >> 8) & 0xFF))
+    if target is None or not target.mappable or _SIZES[target.kind] * 8 != entry & 0xFF:
+        raise _SdoAbort(ABORT_RANGE)
+
+
+def mapping_bits(od: dict[tuple[int, int], OdEntry], pdo: int, count: int) -> int:
+    """Bits of the first `count` entries of TPDO `pdo`'s mapping."""
+    return sum(int(od[(0x1A00 + pdo, s)].value) & 0xFF for s in range(1, count + 1))
+
+
+# ---------------------------------------------------------------------------------------------
 # Faults
 # ---------------------------------------------------------------------------------------------
 @dataclass
@@ -147,6 +395,7 @@ class AccelFaults:
     loss_rate: float = 0.0  # accel-loss-rate=P: drop each TPDO frame with probability P
     emcy: list[tuple[float, int]] = field(default_factory=list)  # accel-emcy=AT_S[:CODE]
     heartbeat_loss_at_s: float | None = None  # accel-heartbeat-loss=AT_S: no heartbeat from then
+    sdo_silent_at_s: float | None = None  # accel-sdo-silent=AT_S: no SDO answer from then
 
     @classmethod
     def from_spec(cls, faults: Any) -> AccelFaults:
@@ -180,6 +429,8 @@ class AccelFaults:
                 out.emcy.sort()
             elif name == "accel-heartbeat-loss":
                 out.heartbeat_loss_at_s = float(value)
+            elif name == "accel-sdo-silent":
+                out.sdo_silent_at_s = float(value)
         return out
 
 
@@ -220,13 +471,19 @@ class NodeStats:
     emcy: int = 0
     nmt_received: int = 0
     tx_errors: int = 0
+    sdo_requests: int = 0
+    sdo_aborts: int = 0
+    sdo_ignored: int = 0  # requests not answered (stopped state, or the accel-sdo-silent fault)
 
 
 class CanAccelNode(Device):
-    """A CANopen-style accelerometer on `bus`, measuring `world` through `accel_model`.
+    """A CANopen accelerometer on `bus`, measuring `world` through `accel_model`, with a CiA 301 SDO
+    server over its object dictionary (PROTOCOLS.md §3.1).
 
-    `rng` (a numpy Generator or a seed) drives only the `accel-loss-rate` fault, so that a
-    faulted run is repeatable; it is not drawn from when the fault is absent.
+    `mapping` picks the TPDO mapping variant (`default`, or `swapped`: axes in another order and
+    another scale); `make_model(rate_hz)` rebuilds the error model when the rate is changed over
+    SDO (0x2100), so that the noise per sample follows the rate. `rng` (a numpy Generator or a
+    seed) drives only the faults, so that a faulted run is repeatable.
     """
 
     name = "accelerometer"
@@ -244,6 +501,8 @@ class CanAccelNode(Device):
         temperature_c: float = 25.0,
         full_scale_g: float = 8.0,
         rng: np.random.Generator | int | None = None,
+        mapping: str = "default",
+        make_model: Callable[[float], _AccelModel] | None = None,
     ) -> None:
         if not 1 <= node_id <= 127:
             raise ValueError(f"CAN accelerometer node_id={node_id}: give a node ID in 1…127")
@@ -252,7 +511,9 @@ class CanAccelNode(Device):
         self.bus = bus
         self.world = world
         self.accel_model = accel_model
+        self.make_model = make_model
         self.node_id = node_id
+        self.mapping = mapping
         self.rate_hz = float(rate_hz)
         self.dt_s = 1.0 / self.rate_hz
         self.lever_arm_b_m = np.asarray(tuple(lever_arm_b_m), dtype=float)
@@ -261,14 +522,24 @@ class CanAccelNode(Device):
         self.full_scale_g = float(full_scale_g)
         self.rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng or 0)
         self.stats = NodeStats()
+        self._power_on_rate_hz = self.rate_hz
+        self.od = build_object_dictionary(node_id, mapping, self.rate_hz)
+        self.sdo = SdoServer(self.od, self._on_sdo_write)
 
         self.state: int | None = None  # None until powered on
         self.power_on_s: float | None = None  # device time of the first `advance`
-        self._next_sample = 0  # index k of the next sample (interval t_on + [k·dt, (k+1)·dt])
+        self._grid_t0_s: float | None = None  # sample k covers grid_t0 + [k·dt, (k+1)·dt]
+        self._next_sample = 0
         self._next_heartbeat_s = math.inf
         self._counter = 0
         self._emcy_index = 0
         self._closed = False
+        self._t_now_s = 0.0
+
+    @property
+    def heartbeat_period_s(self) -> float:
+        """0x1017 in seconds (0: no heartbeat)."""
+        return int(self.od[(0x1017, 0)].value) / 1000.0
 
     # -- Device surface --------------------------------------------------------------------
     def fileno(self) -> int | None:
@@ -280,12 +551,13 @@ class CanAccelNode(Device):
         return {"node_id": self.node_id}
 
     def advance(self, t_device_s: float) -> None:
-        """Act on received NMT commands at `t_device_s`, then send every frame due up to it."""
+        """Act on received NMT/SDO frames at `t_device_s`, then send every frame due up to it."""
         if self._closed:
             return
         if self.state is None:
-            self.power_on_s = float(t_device_s)
+            self.power_on_s = self._grid_t0_s = float(t_device_s)
             self._boot(t_device_s)
+        self._t_now_s = float(t_device_s)
         while (msg := self.bus.recv(timeout=0)) is not None:
             self._on_frame(msg, t_device_s)
         self._emit_until(t_device_s)
@@ -296,14 +568,24 @@ class CanAccelNode(Device):
 
     # -- NMT ---------------------------------------------------------------------------------
     def _boot(self, t_s: float) -> None:
-        """Power-on or reset node: boot-up heartbeat, then pre-operational."""
+        """Power-on or reset node: the dictionary back to its defaults (rate, mapping, heartbeat
+        time), boot-up heartbeat, then pre-operational."""
         self._counter = 0
+        if self.power_on_s is not None and self.power_on_s != t_s:
+            self._set_rate(self._power_on_rate_hz, t_s)
+        self.od.update(build_object_dictionary(self.node_id, self.mapping, self._power_on_rate_hz))
         self.state = STATE_PRE_OPERATIONAL
-        self._next_heartbeat_s = t_s + HEARTBEAT_PERIOD_S
+        period = self.heartbeat_period_s
+        self._next_heartbeat_s = t_s + period if period > 0 else math.inf
         self._send_heartbeat(t_s, STATE_BOOTUP)
 
     def _on_frame(self, msg: can.Message, t_s: float) -> None:
-        if msg.arbitration_id != NMT_ID or msg.is_extended_id or msg.is_remote_frame or msg.dlc != 2:
+        if msg.is_extended_id or msg.is_remote_frame:
+            return
+        if msg.arbitration_id == SDO_RX_BASE + self.node_id:
+            self._on_sdo(bytes(msg.data), t_s)
+            return
+        if msg.arbitration_id != NMT_ID or msg.dlc != 2:
             return
         command, node = decode_nmt(bytes(msg.data))
         if node not in (0, self.node_id):
@@ -321,17 +603,67 @@ class CanAccelNode(Device):
             self._boot(t_s)
         log.debug("node 0x%02X: NMT 0x%02X at %.6f s -> state 0x%02X", self.node_id, command, t_s, self.state)
 
+    # -- SDO ---------------------------------------------------------------------------------
+    def _on_sdo(self, request: bytes, t_s: float) -> None:
+        """Answer at once (well inside the 10 ms of §3.1); no SDO in stopped (CiA 301), none
+        either once the accel-sdo-silent fault is on."""
+        silent_at = self.faults.sdo_silent_at_s
+        if self.state == STATE_STOPPED or (silent_at is not None and t_s >= silent_at):
+            self.stats.sdo_ignored += 1
+            return
+        self._emit_until(t_s)  # a write (rate, mapping) acts from now on, not on earlier samples
+        self.stats.sdo_requests += 1
+        reply = self.sdo.handle(request, self.state)
+        if reply:
+            self.stats.sdo_aborts += int(reply[0] == 0x80)
+            self._send(t_s, SDO_TX_BASE + self.node_id, reply)
+
+    def _on_sdo_write(self, index: int, sub: int, value: Any) -> None:
+        """The node's own rules for a write the dictionary allowed."""
+        if index in (0x1A00, 0x1A01):
+            pdo = index - 0x1A00
+            if sub == 0:
+                if mapping_bits(self.od, pdo, int(value)) > 64:
+                    raise _SdoAbort(ABORT_LENGTH)
+            else:
+                check_mapping_entry(self.od, int(value))
+                count = int(self.od[(index, 0)].value)
+                old = int(self.od[(index, sub)].value)
+                self.od[(index, sub)].value = int(value)
+                bits = mapping_bits(self.od, pdo, count)
+                self.od[(index, sub)].value = old
+                if bits > 64:
+                    raise _SdoAbort(ABORT_LENGTH)
+        elif index == 0x2100:
+            self._set_rate(float(value), self._t_now_s)
+        elif index == 0x1017:
+            period = int(value) / 1000.0
+            self._next_heartbeat_s = self._t_now_s + period if period > 0 else math.inf
+
+    def _set_rate(self, rate_hz: float, t_s: float) -> None:
+        """A new sample rate from `t_s`: the grid restarts where the last sample sent ended."""
+        if rate_hz == self.rate_hz:
+            return
+        self._emit_until(t_s)
+        self._grid_t0_s = self._grid_t0_s + self._next_sample * self.dt_s
+        self._next_sample = 0
+        self.rate_hz = float(rate_hz)
+        self.dt_s = 1.0 / self.rate_hz
+        if self.make_model is not None:
+            self.accel_model = self.make_model(self.rate_hz)
+
     # -- output ------------------------------------------------------------------------------
     def _emit_until(self, t_s: float) -> None:
         """Send heartbeats, EMCYs and samples due up to `t_s`, in device-time order."""
         eps = 1e-9
-        t_on = self.power_on_s if self.power_on_s is not None else t_s
-        k_end = int(math.floor((t_s - t_on) * self.rate_hz + eps))  # samples k < k_end ended by t_s
+        t0 = self._grid_t0_s if self._grid_t0_s is not None else t_s
+        k_end = int(math.floor((t_s - t0) * self.rate_hz + eps))  # samples k < k_end ended by t_s
         n = k_end - self._next_sample
         events: list[tuple[float, int, Any]] = []
-        while self._next_heartbeat_s <= t_s + eps:
+        period = self.heartbeat_period_s
+        while period > 0 and self._next_heartbeat_s <= t_s + eps:
             events.append((self._next_heartbeat_s, 0, None))
-            self._next_heartbeat_s += HEARTBEAT_PERIOD_S
+            self._next_heartbeat_s += period
         while self._emcy_index < len(self.faults.emcy) and self.faults.emcy[self._emcy_index][0] <= t_s + eps:
             events.append((self.faults.emcy[self._emcy_index][0], 1, self.faults.emcy[self._emcy_index][1]))
             self._emcy_index += 1
@@ -354,32 +686,48 @@ class CanAccelNode(Device):
 
     def _sample_frames(self, k0: int, n: int) -> list[tuple[float, int, Any]] | None:
         """Measure samples k0…k0+n−1; TPDO events if operational (the sensor runs regardless)."""
-        t0_s = self.power_on_s + k0 * self.dt_s
+        t0_s = self._grid_t0_s + k0 * self.dt_s
         _, dv_true = self.world.increments(t0_s, n, self.dt_s, self.lever_arm_b_m)
         dv_meas = self.accel_model.apply(np.asarray(dv_true, dtype=float))
-        if self.state != STATE_OPERATIONAL:
-            return None
         ug, over = specific_force_to_ug(dv_meas, self.dt_s, self.full_scale_g)
-        counters = (self._counter + np.arange(n)) & 0xFF
-        self._counter = (self._counter + n) & 0xFF
         status = np.where(over, STATUS_OVER_RANGE, 0) | (STATUS_X_VALID | STATUS_Y_VALID | STATUS_Z_VALID)
         temp_centi = int(round(self.temperature_c * 100.0))
-        p1, p2 = encode_samples(ug, temp_centi, counters, status)
+        values = self._object_values(dv_meas, ug, temp_centi, status, n)
+        if self.state != STATE_OPERATIONAL:
+            return None
+        self._counter = (self._counter + n) & 0xFF
+        payloads = [encode_mapped(mapping_layout(self.od, pdo), values, n) for pdo in (0, 1)]
+        ids = [int(self.od[(0x1800 + pdo, 1)].value) for pdo in (0, 1)]
         keep = np.ones((n, 2), dtype=bool)
         if self.faults.loss_rate > 0.0:
             keep = self.rng.random((n, 2)) >= self.faults.loss_rate
         self.stats.samples += n
         self.stats.tpdo_dropped += int(2 * n - keep.sum())
-        t_end = self.power_on_s + (k0 + 1 + np.arange(n)) * self.dt_s
-        id1, id2 = TPDO1_BASE + self.node_id, TPDO2_BASE + self.node_id
+        t_end = self._grid_t0_s + (k0 + 1 + np.arange(n)) * self.dt_s
         events: list[tuple[float, int, Any]] = []
         for i in range(n):
             t = float(t_end[i])
-            if keep[i, 0]:
-                events.append((t, 2, (id1, p1[i])))
-            if keep[i, 1]:
-                events.append((t, 3, (id2, p2[i])))
+            for pdo in (0, 1):
+                if keep[i, pdo] and payloads[pdo] is not None:
+                    events.append((t, 2 + pdo, (ids[pdo], payloads[pdo][i])))
         return events
+
+    def _object_values(self, dv_meas: np.ndarray, ug: np.ndarray, temp_centi: int, status: np.ndarray,
+                       n: int) -> dict[tuple[int, int], np.ndarray]:
+        """Every mappable object's value per sample; the last one also into the dictionary."""
+        accel_g = dv_meas / (self.dt_s * STANDARD_GRAVITY_M_S2)
+        limit = min(self.full_scale_g * 1e7, _INT32_MAX)
+        tenth_ug = np.clip(np.rint(accel_g * 1e7), -limit, limit).astype(np.int64)
+        values = {
+            (0x2000, 1): ug[:, 0], (0x2000, 2): ug[:, 1], (0x2000, 3): ug[:, 2],
+            (0x2004, 1): tenth_ug[:, 0], (0x2004, 2): tenth_ug[:, 1], (0x2004, 3): tenth_ug[:, 2],
+            (0x2001, 0): np.full(n, temp_centi), (0x2002, 0): (self._counter + np.arange(n)) & 0xFF,
+            (0x2003, 0): status,
+        }
+        for key, v in values.items():
+            if key in self.od:
+                self.od[key].value = int(v[-1])
+        return values
 
     def _send_heartbeat(self, t_s: float, state: int) -> None:
         loss_at = self.faults.heartbeat_loss_at_s
@@ -402,3 +750,16 @@ class CanAccelNode(Device):
         except can.CanError as exc:  # a full TX queue on a real bus: the frame is lost, as on hardware
             self.stats.tx_errors += 1
             log.warning("node 0x%02X: frame 0x%03X not sent: %s", self.node_id, arbitration_id, exc)
+
+
+def encode_mapped(layout: list[tuple[int, int, str]], values: dict[tuple[int, int], np.ndarray],
+                  n: int) -> list[bytes] | None:
+    """n TPDO payloads by a mapping [(index, sub, kind)] (None for an empty mapping)."""
+    if not layout:
+        return None
+    dtype = np.dtype([(f"f{j}", _NUMPY[kind]) for j, (_, _, kind) in enumerate(layout)])
+    rec = np.empty(n, dtype)
+    for j, (index, sub, _) in enumerate(layout):
+        rec[f"f{j}"] = values[(index, sub)]
+    raw, size = rec.tobytes(), dtype.itemsize
+    return [raw[size * i : size * i + size] for i in range(n)]

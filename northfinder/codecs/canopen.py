@@ -12,6 +12,7 @@ unpaired frames, counter gaps and lost samples, and keeps heartbeats and emergen
 from __future__ import annotations
 
 import functools
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,7 +30,12 @@ __all__ = [
     "CanCodec",
     "Emcy",
     "RawAccelSamples",
+    "MappedObject",
+    "PdoLayout",
+    "TpdoLayout",
+    "default_layout",
     "load_database",
+    "object_role",
 ]
 
 DEFAULT_DBC_PATH = Path(__file__).resolve().parent.parent / "data" / "accelerometer.dbc"
@@ -144,98 +150,265 @@ class AccelStats:
 
 @dataclass
 class RawAccelSamples:
-    """Paired samples as raw integers (µg, 0.01 °C) plus the unwrapped counter."""
+    """Paired samples as raw integers of the mapped objects plus the unwrapped counter (for the
+    reference mapping: µg and 0.01 °C)."""
 
     counter: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    accel_ug: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
-    temperature_centi_c: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    accel_raw: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
+    temperature_raw: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     status: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
     timestamp_s: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))
+
+    @property
+    def accel_ug(self) -> np.ndarray:
+        """The raw axis values (µg with the reference mapping; see the layout's scale otherwise)."""
+        return self.accel_raw
 
     def __len__(self) -> int:
         return len(self.counter)
 
 
-class AccelFrameDecoder:
-    """Pairs TPDO1/TPDO2 into samples; tracks heartbeat state and emergencies.
+# -- the TPDO mapping, read from the node (or the EDS defaults) -------------------------------
+UNIT_SCALE = {"g": 1.0, "mg": 1e-3, "ug": 1e-6, "µg": 1e-6, "m/s2": 1 / 9.80665, "m/s^2": 1 / 9.80665,
+              "degc": 1.0, "°c": 1.0, "c": 1.0, "": 1.0}
+"""An EDS `Unit` → the edge unit (g for acceleration, °C for temperature) per unit."""
+ROLES = ("x", "y", "z", "temperature", "counter", "status")
+_INT = {(8, False): "B", (16, False): "H", (32, False): "I", (8, True): "b", (16, True): "h", (32, True): "i"}
 
-    Lost samples = counter gaps (missing counter values) + TPDO2 frames without their TPDO1
-    (the sample's counter is known but its x, y are not). A TPDO1 followed by another TPDO1
-    is counted as unpaired; its sample shows up as a counter gap at the next TPDO2.
+
+def object_role(name: str) -> str | None:
+    """What a mapped object is, from its EDS ParameterName: an axis, temperature, counter, status."""
+    low = name.strip().lower()
+    if "accel" in low and low[-1:] in ("x", "y", "z") and (len(low) < 2 or not low[-2].isalpha()):
+        return low[-1]
+    for role in ("temperature", "counter", "status"):
+        if role in low:
+            return role
+    return None
+
+
+@dataclass(frozen=True)
+class MappedObject:
+    """One entry of a TPDO mapping: the object, its bits, and what it means (from the EDS)."""
+
+    index: int
+    sub: int
+    bits: int
+    signed: bool
+    name: str = ""
+    role: str | None = None
+    scale: float = 1.0  # raw × scale → g (axes) or °C (temperature)
+    unit: str = ""
+
+    @property
+    def label(self) -> str:
+        return f"{self.index:04X}:{self.sub} {self.name}".strip()
+
+
+@dataclass(frozen=True)
+class TpdoLayout:
+    """One TPDO: its COB-ID and the objects mapped into it, in order."""
+
+    number: int
+    cob_id: int
+    objects: tuple[MappedObject, ...]
+
+    @property
+    def length(self) -> int:
+        return sum(o.bits for o in self.objects) // 8
+
+    @property
+    def fmt(self) -> str:
+        return "<" + "".join(_INT[(o.bits, o.signed)] for o in self.objects)
+
+
+@dataclass(frozen=True)
+class PdoLayout:
+    """The node's TPDOs in transmission order; the last one closes a sample and carries its counter."""
+
+    tpdos: tuple[TpdoLayout, ...]
+
+    def find(self, role: str) -> MappedObject | None:
+        for t in self.tpdos:
+            for o in t.objects:
+                if o.role == role:
+                    return o
+        return None
+
+    def problems(self) -> list[str]:
+        """What keeps this mapping from giving samples (empty if it is usable)."""
+        out = []
+        for o in (o for t in self.tpdos for o in t.objects):
+            if (o.bits, o.signed) not in _INT:
+                out.append(f"object {o.label} is mapped with {o.bits} bits; only 8/16/32-bit integers decode")
+        for role in ("x", "y", "z", "counter"):
+            if self.find(role) is None:
+                out.append(f"no mapped object is the {role if role == 'counter' else 'acceleration ' + role}"
+                           " (an EDS ParameterName such as 'Acceleration x' / 'Sample counter')")
+        if self.tpdos and not any(o.role == "counter" for o in self.tpdos[-1].objects):
+            out.append(f"the sample counter must be in the last TPDO (COB-ID 0x{self.tpdos[-1].cob_id:03X})")
+        return out
+
+    def describe(self) -> str:
+        """`TPDO1 0x190: 2000:1 Acceleration x (1 ug), …; TPDO2 …` for check and the events."""
+        parts = []
+        for t in self.tpdos:
+            objs = ", ".join(f"{o.label}" + (f" ({o.scale / UNIT_SCALE.get(o.unit.lower(), 1.0):g} {o.unit})"
+                                              if o.unit else "") for o in t.objects)
+            parts.append(f"TPDO{t.number} 0x{t.cob_id:03X}: {objs}")
+        return "; ".join(parts)
+
+    def to_dict(self) -> dict:
+        return {"tpdos": [{"number": t.number, "cob_id": t.cob_id,
+                           "objects": [dict(o.__dict__) for o in t.objects]} for t in self.tpdos]}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> PdoLayout:
+        return cls(tuple(TpdoLayout(int(t["number"]), int(t["cob_id"]),
+                                    tuple(MappedObject(**o) for o in t["objects"])) for t in data["tpdos"]))
+
+
+def _ref(index: int, sub: int, bits: int, signed: bool, name: str, role: str, scale: float,
+         unit: str) -> MappedObject:
+    return MappedObject(index, sub, bits, signed, name, role, scale, unit)
+
+
+def default_layout(node_id: int = DBC_NODE_ID) -> PdoLayout:
+    """The reference node's mapping (PROTOCOLS.md §3.1 defaults, = the DBC's TPDO1/TPDO2)."""
+    return PdoLayout((
+        TpdoLayout(1, TPDO1_BASE + node_id, (
+            _ref(0x2000, 1, 32, True, "Acceleration x", "x", 1e-6, "ug"),
+            _ref(0x2000, 2, 32, True, "Acceleration y", "y", 1e-6, "ug"))),
+        TpdoLayout(2, TPDO2_BASE + node_id, (
+            _ref(0x2000, 3, 32, True, "Acceleration z", "z", 1e-6, "ug"),
+            _ref(0x2001, 0, 16, True, "Temperature", "temperature", 0.01, "degC"),
+            _ref(0x2002, 0, 8, False, "Sample counter", "counter", 1.0, ""),
+            _ref(0x2003, 0, 8, False, "Status", "status", 1.0, ""))),
+    ))
+
+
+class AccelFrameDecoder:
+    """Assembles samples from the node's TPDOs by a mapping (:class:`PdoLayout`); tracks heartbeat
+    state and emergencies.
+
+    A sample is one frame of each TPDO in order; the last TPDO (which carries the counter)
+    completes it. Lost samples = counter gaps (missing counter values) + closing frames whose
+    earlier TPDOs did not arrive. An earlier TPDO seen twice before its closing frame counts as
+    unpaired; its sample shows up as a counter gap.
     """
 
-    def __init__(self, codec: CanCodec) -> None:
+    def __init__(self, codec: CanCodec, layout: PdoLayout | None = None) -> None:
         self.codec = codec
         self.stats = AccelStats()
         self.heartbeat_state: int | None = None
         self.emergencies: list[Emcy] = []
-        self._pending_xy: tuple[int, int] | None = None
         self._last_counter: int | None = None
         self._counter_index = 0
-        self._rows: list[tuple[int, int, int, int, int, int, float]] = []
+        self._rows: list[tuple] = []
+        self.set_layout(layout or default_layout(codec.node_id))
+
+    def set_layout(self, layout: PdoLayout) -> None:
+        """Decode by `layout` from now on (the mapping read from the node)."""
+        problems = layout.problems()
+        if problems:
+            raise ValueError(problems[0])
+        self.layout = layout
+        self._tpdo = {t.cob_id: (k, t, struct.Struct(t.fmt)) for k, t in enumerate(layout.tpdos)}
+        self._last = len(layout.tpdos) - 1
+        self._pending: dict[int, tuple] = {}
+        roles = [(o.role, k, j) for k, t in enumerate(layout.tpdos) for j, o in enumerate(t.objects)]
+        self._where = {role: (k, j) for role, k, j in roles if role is not None}
+
+    def names(self) -> dict[int, str]:
+        """COB-ID → 'TPDO<n>' for this layout."""
+        return {t.cob_id: f"TPDO{t.number}" for t in self.layout.tpdos}
 
     def feed(self, can_id: int, data: bytes, timestamp: float | None = None,
-             is_extended: bool = False, is_remote: bool = False) -> str | None:
+             is_extended: bool = False, is_remote: bool = False, node_frames: bool = True) -> str | None:
         """Take one frame; returns the frame's name if it was one of this node's, else None.
 
-        Never raises on bus input: a frame of this node shorter than its DBC message (a wrong
-        DLC) is counted in ``stats.malformed`` and dropped like a lost frame (None is returned),
-        so one bad frame cannot stop the driver's notifier thread.
+        `node_frames=False`: only TPDOs are decoded here (the live driver gets heartbeats and
+        EMCY through python-canopen). Never raises on bus input: a frame of this node shorter
+        than its mapping or message (a wrong DLC) is counted in ``stats.malformed`` and dropped.
         """
         if is_extended or is_remote:
             return None
-        if self.codec.frame_name(can_id) == "NMT":  # commands from a host: nothing to decode
+        hit = self._tpdo.get(can_id)
+        if hit is not None:
+            k, tpdo, st = hit
+            if len(data) < st.size:
+                self.stats.malformed += 1
+                return None
+            self.stats.frames += 1
+            self._on_tpdo(k, st.unpack_from(bytes(data)), timestamp)
+            return f"TPDO{tpdo.number}"
+        if not node_frames:
+            return None
+        if can_id == NMT_ID:  # commands from a host: nothing to decode
             return "NMT"
+        name = self.codec.frame_name(can_id)
+        if name not in ("HEARTBEAT", "EMCY"):
+            return None
         try:
-            decoded = self.codec.decode(can_id, data)
+            _, sig = self.codec.decode(can_id, data)
         except ValueError:
             self.stats.malformed += 1
             return None
-        if decoded is None:
-            return None
-        name, sig = decoded
         self.stats.frames += 1
-        if name == "TPDO1":
-            if self._pending_xy is not None:
-                self.stats.unpaired += 1
-            self._pending_xy = (sig["accel_x"], sig["accel_y"])
-        elif name == "TPDO2":
-            counter = sig["counter"]
-            if self._last_counter is None:
-                self._counter_index = counter
-            else:
-                step = (counter - self._last_counter) % COUNTER_MODULO or COUNTER_MODULO
-                if step > 1:
-                    self.stats.counter_gaps += 1
-                    self.stats.lost_samples += step - 1
-                self._counter_index += step
-            self._last_counter = counter
-            if self._pending_xy is None:
-                self.stats.unpaired += 1
-                self.stats.lost_samples += 1
-            else:
-                x, y = self._pending_xy
-                self._pending_xy = None
-                self.stats.pairs += 1
-                ts = float("nan") if timestamp is None else float(timestamp)
-                self._rows.append((self._counter_index, x, y, sig["accel_z"], sig["temperature"],
-                                   sig["status"], ts))
-        elif name == "HEARTBEAT":
-            self.stats.heartbeats += 1
-            self.heartbeat_state = sig["state"]
-        elif name == "EMCY":
-            self.stats.emcy += 1
-            code = sig["error_code"]
-            meaning = EMCY_MEANINGS.get(code, f"error code 0x{code:04X}")
-            self.emergencies.append(Emcy(code, sig["error_register"], meaning, bytes(data[3:8]), timestamp))
+        if name == "HEARTBEAT":
+            self.on_heartbeat(sig["state"])
+        else:
+            self.on_emcy(sig["error_code"], sig["error_register"], bytes(data[3:8]), timestamp)
         return name
 
+    def on_heartbeat(self, state: int) -> None:
+        self.stats.heartbeats += 1
+        self.heartbeat_state = int(state)
+
+    def on_emcy(self, code: int, register: int, vendor: bytes, timestamp: float | None) -> None:
+        self.stats.emcy += 1
+        meaning = EMCY_MEANINGS.get(code, f"error code 0x{code:04X}")
+        self.emergencies.append(Emcy(int(code), int(register), meaning, bytes(vendor), timestamp))
+
+    def _on_tpdo(self, k: int, values: tuple, timestamp: float | None) -> None:
+        if k < self._last:
+            if k in self._pending:
+                self.stats.unpaired += 1
+            self._pending[k] = values
+            return
+        pending, self._pending = self._pending, {}
+        ck, cj = self._where["counter"]
+        counter = values[cj]
+        if self._last_counter is None:
+            self._counter_index = counter
+        else:
+            step = (counter - self._last_counter) % COUNTER_MODULO or COUNTER_MODULO
+            if step > 1:
+                self.stats.counter_gaps += 1
+                self.stats.lost_samples += step - 1
+            self._counter_index += step
+        self._last_counter = counter
+        if len(pending) < self._last:
+            self.stats.unpaired += 1
+            self.stats.lost_samples += 1
+            return
+        pending[k] = values
+        self.stats.pairs += 1
+
+        def get(role: str, default: int) -> int:
+            where = self._where.get(role)
+            return default if where is None else pending[where[0]][where[1]]
+
+        ts = float("nan") if timestamp is None else float(timestamp)
+        self._rows.append((self._counter_index, get("x", 0), get("y", 0), get("z", 0),
+                           get("temperature", 0), get("status", 0x07), ts))
+
     def pending(self) -> int:
-        """Samples paired and not yet drained."""
+        """Samples complete and not yet drained."""
         return len(self._rows)
 
     def drain(self, max_samples: int | None = None) -> RawAccelSamples:
-        """Hand over (and forget) the oldest paired samples."""
+        """Hand over (and forget) the oldest complete samples."""
         k = len(self._rows) if max_samples is None else min(max_samples, len(self._rows))
         rows, self._rows = self._rows[:k], self._rows[k:]
         if not rows:
@@ -243,8 +416,8 @@ class AccelFrameDecoder:
         ints = np.array([r[:6] for r in rows], dtype=np.int64)
         return RawAccelSamples(
             counter=ints[:, 0].copy(),
-            accel_ug=ints[:, 1:4].copy(),
-            temperature_centi_c=ints[:, 4].copy(),
+            accel_raw=ints[:, 1:4].copy(),
+            temperature_raw=ints[:, 4].copy(),
             status=ints[:, 5].astype(np.uint8),
             timestamp_s=np.array([r[6] for r in rows], dtype=np.float64),
         )

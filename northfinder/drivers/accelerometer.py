@@ -1,14 +1,23 @@
-"""CANopen-style accelerometer driver (docs/PROTOCOLS.md §3) on any python-can bus.
+"""CANopen accelerometer driver (docs/PROTOCOLS.md §3, §3.1) on python-canopen over any python-can bus.
 
 The bus comes from an interface/channel/bitrate (``virtual``, ``slcan`` on a serial port,
-``socketcan`` on ``vcan0``/``can0``…); a ``can.Notifier`` hands every frame to one listener,
-which (in one place) writes it to a python-can log (``.asc`` or ``.blf``, chosen by the suffix)
-and decodes it with cantools through :class:`northfinder.codecs.canopen.AccelFrameDecoder`:
-TPDO1/TPDO2 pairing, 8-bit counter unwrapping, lost samples, heartbeats and emergencies.
-Frames this driver sends (NMT) are logged too, marked Tx.
+``socketcan`` on ``vcan0``/``can0``…) or is handed in; a ``canopen.Network`` runs over that same
+bus object with a ``RemoteNode`` built from an EDS (the project's reference node,
+``northfinder/data/accelerometer.eds``, or the user's own). NMT commands, heartbeat consumption,
+the EMCY consumer, the SDO client (expedited and segmented) and reading the TPDO mapping are the
+library's. One ``can.Notifier`` feeds the library and this driver's listener, which (in one place)
+writes every frame to a python-can log (``.asc``/``.blf``, Tx frames marked) and assembles samples
+from the TPDOs by the mapping the node reports (:class:`northfinder.codecs.canopen.AccelFrameDecoder`).
 
-:func:`decode_can_log` is the pure replay path: the same decoder over the logged frames, so a
-log replays to bit-identical arrays.
+:meth:`Accelerometer.configure` is the start-of-run SDO configuration: NMT pre-operational,
+identity (0x1018) and device name (0x1008), the TPDO mapping (0x1800/0x1A00…), the sample rate
+(0x2100, or the object named by ``rate_object``, e.g. the TPDO event timer 1800:5) and the
+heartbeat producer time (0x1017). What it writes is left as configured after the run (the node
+keeps it until a reset-node or power cycle restores its defaults; nothing is stored with 0x1010);
+the node itself is left stopped (NMT stop) by the run.
+
+:func:`decode_can_log` is the pure replay path: the same decoder over the logged frames (with the
+mapping the run used), so a log replays to bit-identical arrays.
 
 Example::
 
@@ -16,10 +25,10 @@ Example::
 
     with Accelerometer("slcan", "/dev/ttyACM0", bitrate=500000, log_path="can.asc") as acc:
         acc.wait_heartbeat()                  # the node is there (boot-up 0x00 or its state)
+        info = acc.configure(rate_hz=100)     # SDO: identity, mapping, rate, heartbeat time
         acc.start_node()                      # NMT start → operational
-        acc.wait_heartbeat_state(0x05)        # its next heartbeats say operational
         block = acc.read(100)                 # one second at 100 Hz
-        print(block.accel_g.mean(axis=0), acc.stats, acc.emergencies)
+        print(info["identity"], block.accel_g.mean(axis=0), acc.stats, acc.emergencies)
 """
 
 from __future__ import annotations
@@ -30,15 +39,44 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import can
+import canopen
 import numpy as np
+from canopen.objectdictionary import datatypes
+from canopen.sdo.exceptions import SdoAbortedError, SdoError
 
-from northfinder.codecs.canopen import AccelFrameDecoder, AccelStats, CanCodec, Emcy, RawAccelSamples
+from northfinder.codecs.canopen import (
+    UNIT_SCALE,
+    AccelFrameDecoder,
+    AccelStats,
+    CanCodec,
+    Emcy,
+    MappedObject,
+    PdoLayout,
+    RawAccelSamples,
+    TpdoLayout,
+    object_role,
+)
 from northfinder.errors import DeviceError
 
-__all__ = ["Accelerometer", "AccelBlock", "AccelStats", "Emcy", "decode_can_log", "samples_to_block"]
+__all__ = ["DEFAULT_EDS_PATH", "Accelerometer", "AccelBlock", "AccelStats", "Emcy", "decode_can_log",
+           "samples_to_block"]
 
+DEFAULT_EDS_PATH = Path(__file__).resolve().parent.parent / "data" / "accelerometer.eds"
+SDO_TIMEOUT_S = 1.0  # PROTOCOLS.md §3.1: a client gives up after 1 s (abort 0x05040000)
+ABORT_MEANINGS = {
+    0x05040000: "SDO protocol timed out",
+    0x05040001: "command specifier not valid",
+    0x06010001: "write-only object",
+    0x06010002: "read-only object",
+    0x06020000: "object does not exist",
+    0x06070010: "length mismatch",
+    0x06090011: "sub-index does not exist",
+    0x06090030: "value range exceeded",
+    0x08000022: "not allowed in the present device state",
+}
 DEVICE = "accelerometer"
 
 
@@ -62,32 +100,68 @@ def _divisor(scale: float) -> float:
     return float(round(inv)) if abs(inv - round(inv)) < 1e-9 * inv else inv
 
 
-def samples_to_block(raw: RawAccelSamples, codec: CanCodec) -> AccelBlock:
-    """Raw paired samples → an AccelBlock in g and °C, scaled by the DBC's factors."""
-    accel_div = _divisor(codec.scale("TPDO1", "accel_x"))
-    temp_div = _divisor(codec.scale("TPDO2", "temperature"))
+def samples_to_block(raw: RawAccelSamples, layout: PdoLayout) -> AccelBlock:
+    """Raw samples → an AccelBlock in g and °C, each axis scaled by its mapped object's EDS unit."""
     counter = np.asarray(raw.counter, dtype=np.int64)
     lost = int(counter[-1] - counter[0] + 1 - len(counter)) if len(counter) else 0
-    return AccelBlock(
-        counter=counter,
-        accel_g=raw.accel_ug.astype(np.float64) / accel_div,
-        temperature_c=raw.temperature_centi_c.astype(np.float64) / temp_div,
-        status=raw.status.astype(np.uint8),
-        lost_samples=lost,
-    )
+    accel = np.empty(raw.accel_raw.shape, dtype=np.float64)
+    for j, role in enumerate("xyz"):
+        accel[:, j] = raw.accel_raw[:, j].astype(np.float64) / _divisor(layout.find(role).scale)
+    temp_obj = layout.find("temperature")
+    temperature = (raw.temperature_raw.astype(np.float64) / _divisor(temp_obj.scale) if temp_obj is not None
+                   else np.full(len(counter), np.nan))
+    return AccelBlock(counter=counter, accel_g=accel, temperature_c=temperature,
+                      status=raw.status.astype(np.uint8), lost_samples=lost)
 
 
-def decode_can_log(path: str | Path, node_id: int = 0x10, dbc_path: str | Path | None = None
-                   ) -> tuple[AccelBlock, AccelStats]:
-    """Decode a python-can log (.asc, .blf, …) of the node's traffic (replay)."""
+def decode_can_log(path: str | Path, node_id: int = 0x10, dbc_path: str | Path | None = None,
+                   layout: PdoLayout | dict | None = None) -> tuple[AccelBlock, AccelStats]:
+    """Decode a python-can log (.asc, .blf, …) of the node's traffic (replay); `layout` is the
+    mapping the run read from the node (its events' `accel_config`), default the reference one."""
     codec = CanCodec(node_id, dbc_path)
-    decoder = AccelFrameDecoder(codec)
+    if isinstance(layout, dict):
+        layout = PdoLayout.from_dict(layout)
+    decoder = AccelFrameDecoder(codec, layout)
     for msg in can.LogReader(str(path)):
         if msg.is_error_frame or not msg.is_rx:
             continue
         decoder.feed(msg.arbitration_id, bytes(msg.data), msg.timestamp, msg.is_extended_id,
                      msg.is_remote_frame)
-    return samples_to_block(decoder.drain(), codec), decoder.stats
+    return samples_to_block(decoder.drain(), decoder.layout), decoder.stats
+
+
+def layout_from_node(node: canopen.RemoteNode) -> PdoLayout:
+    """The enabled TPDOs of `node.tpdo` (read from the node) as a PdoLayout, roles, scale and
+    units from the EDS entries of the mapped objects."""
+    tpdos = []
+    for number, pdo_map in sorted(node.tpdo.map.items()):
+        if not pdo_map.enabled or not len(pdo_map.map):
+            continue
+        objects = []
+        for var in pdo_map.map:
+            od = var.od
+            unit = str(getattr(od, "unit", "") or "")
+            role = object_role(od.name)
+            scale = float(getattr(od, "factor", 1) or 1) * UNIT_SCALE.get(unit.lower(), 1.0)
+            objects.append(MappedObject(var.index, var.subindex, int(var.length),
+                                        od.data_type in datatypes.SIGNED_TYPES, od.name, role, scale, unit))
+        tpdos.append(TpdoLayout(number, int(pdo_map.cob_id), tuple(objects)))
+    return PdoLayout(tuple(tpdos))
+
+
+class _Network(canopen.Network):
+    """python-canopen's network over a bus we opened; every frame it sends is also logged."""
+
+    def __init__(self, bus: can.BusABC, on_tx: Callable[[can.Message], None]) -> None:
+        super().__init__(bus)
+        self._on_tx = on_tx
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        msg = can.Message(arbitration_id=can_id, data=bytes(data), is_extended_id=can_id > 0x7FF,
+                          is_remote_frame=remote, is_rx=False, timestamp=time.time())
+        with self.send_lock:
+            self.bus.send(msg)
+        self._on_tx(msg)
 
 
 class _Listener(can.Listener):
@@ -104,7 +178,7 @@ class _Listener(can.Listener):
 
 
 class Accelerometer:
-    """A CANopen-style accelerometer node on a python-can bus; a context manager."""
+    """A CANopen accelerometer node on a python-can bus, through python-canopen; a context manager."""
 
     def __init__(
         self,
@@ -115,13 +189,16 @@ class Accelerometer:
         node_id: int = 0x10,
         log_path: str | Path | None = None,
         dbc_path: str | Path | None = None,
+        eds_path: str | Path | None = None,
         rate_hz: float = 100.0,
         timeout_s: float = 2.0,
+        sdo_timeout_s: float = SDO_TIMEOUT_S,
         bus: can.BusABC | None = None,
         bus_options: dict | None = None,
     ) -> None:
         """`bus_options` go to `can.Bus` as they are (e.g. ``{"sleep_after_open": 0}`` for an slcan
-        adapter that needs no settling time, such as firmware_sim's)."""
+        adapter that needs no settling time, such as firmware_sim's). `rate_hz` is the rate assumed
+        until :meth:`configure` reads the node's own; `eds_path` the node's EDS (default: ours)."""
         self.interface = interface
         self.channel = channel
         self.port = f"{interface}:{channel}"
@@ -135,6 +212,8 @@ class Accelerometer:
         except OSError as exc:
             raise DeviceError(DEVICE, self.port, f"cannot read the DBC file {dbc_path} ({exc})") from None
         self.node_id = self.codec.node_id
+        self.eds_path = Path(eds_path) if eds_path else DEFAULT_EDS_PATH
+        node = self._remote_node(self.eds_path)
         self._own_bus = bus is None
         if bus is None:
             try:
@@ -155,7 +234,30 @@ class Accelerometer:
         if log_path is not None:
             Path(log_path).parent.mkdir(parents=True, exist_ok=True)
             self._logger = can.Logger(str(log_path))
-        self._notifier = can.Notifier(self._bus, [_Listener(self)], timeout=0.05)
+        self.network = _Network(bus, self._log_tx)
+        self.node = node
+        self.network.add_node(node)
+        node.sdo.RESPONSE_TIMEOUT = float(sdo_timeout_s)
+        node.sdo.MAX_RETRIES = 1
+        node.nmt.add_heartbeat_callback(self._on_heartbeat)
+        node.emcy.add_callback(self._on_emcy)
+        self._notifier = can.Notifier(self._bus, [_Listener(self), *self.network.listeners], timeout=0.05)
+        self.network.notifier = self._notifier
+
+    def _remote_node(self, eds: Path) -> canopen.RemoteNode:
+        """The RemoteNode from the EDS; a missing or unreadable EDS is one line naming the file."""
+        if not eds.is_file():
+            raise DeviceError(DEVICE, self.port, f"EDS file {eds} not found — fix [accelerometer] eds")
+        try:
+            return canopen.RemoteNode(self.node_id, str(eds))
+        except Exception as exc:  # noqa: BLE001 - the EDS parser raises many types; all mean a bad file
+            raise DeviceError(DEVICE, self.port, f"cannot parse the EDS file {eds} ({exc})") from None
+
+    @property
+    def layout(self) -> PdoLayout:
+        """The TPDO mapping samples are decoded by (the node's, once :meth:`read_mapping` ran)."""
+        with self._lock:
+            return self._decoder.layout
 
     # -- frames ------------------------------------------------------------------------------
     def _log(self, msg: can.Message) -> None:
@@ -169,14 +271,31 @@ class Accelerometer:
                 msg.channel = None
             self._logger.on_message_received(msg)
 
+    def _log_tx(self, msg: can.Message) -> None:
+        with self._lock:
+            self._log(msg)
+
     def _on_frame(self, msg: can.Message) -> None:
         with self._lock:
             self._log(msg)
             if not msg.is_error_frame:
-                name = self._decoder.feed(msg.arbitration_id, bytes(msg.data), msg.timestamp,
-                                          msg.is_extended_id, msg.is_remote_frame)
-                if name == "HEARTBEAT":
-                    self._last_heartbeat = time.monotonic()
+                can_id, data = msg.arbitration_id, msg.data
+                if can_id == 0x700 + self.node_id and len(data) < 1 or can_id == 0x080 + self.node_id and (
+                        len(data) < 8):
+                    self._decoder.stats.malformed += 1  # python-canopen would drop it (and log an error)
+                elif self._decoder.feed(can_id, bytes(data), msg.timestamp, msg.is_extended_id,
+                                        msg.is_remote_frame, node_frames=False):
+                    self._lock.notify_all()
+
+    def _on_heartbeat(self, state: int) -> None:
+        with self._lock:
+            self._decoder.on_heartbeat(state)
+            self._last_heartbeat = time.monotonic()
+            self._lock.notify_all()
+
+    def _on_emcy(self, err: canopen.emcy.EmcyError) -> None:
+        with self._lock:
+            self._decoder.on_emcy(err.code, err.register, bytes(err.data), err.timestamp)
             self._lock.notify_all()
 
     def _on_error(self, exc: Exception) -> None:
@@ -184,25 +303,142 @@ class Accelerometer:
             self._error = exc
             self._lock.notify_all()
 
-    def _send(self, can_id: int, data: bytes) -> None:
-        msg = can.Message(arbitration_id=can_id, data=data, is_extended_id=False, timestamp=time.time(),
-                          is_rx=False)
+    def _nmt(self, command: int) -> None:
         try:
-            self._bus.send(msg, timeout=self.timeout_s)
+            self.node.nmt.send_command(command)
         except can.CanError as exc:
             raise DeviceError(DEVICE, self.port, f"cannot send on {self.port} ({exc}) — is the bus up and "
                               "another node acknowledging?") from None
-        with self._lock:
-            self._log(msg)
 
     def start_node(self) -> None:
-        """NMT start: the node becomes operational and sends TPDO1/TPDO2 at its rate."""
-        self._send(*self.codec.encode_nmt("start"))
+        """NMT start: the node becomes operational and sends its TPDOs at its rate."""
+        self._nmt(0x01)
 
     def stop_node(self) -> None:
         """NMT stop: the node stops sending data (heartbeats go on)."""
-        self._send(*self.codec.encode_nmt("stop"))
+        self._nmt(0x02)
 
+    def enter_pre_operational(self) -> None:
+        """NMT enter pre-operational: SDO works, mapping and rate may be written, no TPDOs."""
+        self._nmt(0x80)
+
+    # -- SDO ---------------------------------------------------------------------------------
+    def _what(self, index: int, sub: int) -> str:
+        try:
+            obj = self.node.object_dictionary[index]
+            name = obj.name if isinstance(obj, canopen.objectdictionary.ODVariable) else obj[sub].name
+        except KeyError:
+            name = ""
+        return f"object {index:04X}:{sub}" + (f" ({name})" if name else "")
+
+    def _sdo_error(self, verb: str, index: int, sub: int, exc: Exception) -> DeviceError:
+        where = f"node 0x{self.node_id:02X} on {self.port}"
+        if isinstance(exc, KeyError):
+            return DeviceError(DEVICE, self.port, f"the EDS {self.eds_path} has no object {index:04X}:{sub}, "
+                               f"which the run needs ({verb}) — use the node's own EDS ([accelerometer] eds)")
+        if isinstance(exc, SdoAbortedError):
+            code = int(exc.code)
+            return DeviceError(DEVICE, self.port, f"{where}: SDO {verb} of {self._what(index, sub)} aborted "
+                               f"with 0x{code:08X} ({ABORT_MEANINGS.get(code, 'abort code')})")
+        return DeviceError(DEVICE, self.port, f"{where}: no SDO answer to the {verb} of "
+                           f"{self._what(index, sub)} within {self.node.sdo.RESPONSE_TIMEOUT:g} s (abort "
+                           "0x05040000, SDO timeout) — is the node pre-operational or operational?")
+
+    def sdo_read(self, index: int, sub: int = 0, need_eds: bool = True) -> Any:
+        """One object's value through the EDS's type (segmented when longer than 4 bytes); with
+        `need_eds=False` an object the EDS lacks is still asked for (its raw bytes)."""
+        try:
+            try:
+                obj = self.node.sdo[index]
+                var = obj if isinstance(obj, canopen.sdo.Variable) else obj[sub]
+            except KeyError:
+                if need_eds:
+                    raise
+                return self.node.sdo.upload(index, sub)
+            return var.raw
+        except (KeyError, SdoError) as exc:
+            raise self._sdo_error("read", index, sub, exc) from None
+
+    def sdo_write(self, index: int, sub: int, value: Any) -> None:
+        """Write one object (expedited) through the EDS's type."""
+        try:
+            obj = self.node.sdo[index]
+            (obj if isinstance(obj, canopen.sdo.Variable) else obj[sub]).raw = value
+        except (KeyError, SdoError) as exc:
+            raise self._sdo_error("write", index, sub, exc) from None
+
+    def identity(self) -> dict[str, Any]:
+        """Vendor ID, product code, revision, serial number (0x1018) and device name (0x1008)."""
+        keys = ("vendor_id", "product_code", "revision", "serial_number")
+        out: dict[str, Any] = {k: int(self.sdo_read(0x1018, s)) for s, k in enumerate(keys, start=1)}
+        out["device_name"] = str(self.sdo_read(0x1008, 0)).rstrip("\x00")
+        return out
+
+    def read_mapping(self) -> PdoLayout:
+        """Read the TPDO communication and mapping parameters from the node (python-canopen's
+        TPDO maps) and decode samples by that mapping from now on."""
+        for number, pdo_map in sorted(self.node.tpdo.map.items()):
+            try:
+                pdo_map.read()
+            except (KeyError, SdoError) as exc:
+                what = f"read of the TPDO{number} mapping"
+                raise self._sdo_error(what, 0x1A00 + number - 1, 0, exc) from None
+            if pdo_map.cob_id:
+                self.network.unsubscribe(pdo_map.cob_id, pdo_map.on_message)  # decoded here, not twice
+        layout = layout_from_node(self.node)
+        problems = layout.problems()
+        if problems:
+            raise DeviceError(DEVICE, self.port, f"node 0x{self.node_id:02X}: cannot decode its TPDO mapping "
+                              f"({layout.describe() or 'nothing mapped'}): {problems[0]}")
+        with self._lock:
+            self._decoder.drain()
+            self._decoder.set_layout(layout)
+        return layout
+
+    def _rate_object(self, rate_object: str | None) -> tuple[int, int]:
+        text = rate_object or "2100:0"
+        index, _, sub = text.partition(":")
+        return int(index, 16), int(sub or "0", 16)
+
+    def read_rate(self, rate_object: str | None = None) -> float:
+        """The node's sample rate [Hz]: the rate object (Hz), or an event timer 18xx:5 (ms)."""
+        index, sub = self._rate_object(rate_object)
+        value = float(self.sdo_read(index, sub))
+        if 0x1800 <= index < 0x1A00 and sub == 5:
+            return 1000.0 / value if value else 0.0
+        return value
+
+    def configure(self, rate_hz: float | None = None, heartbeat_ms: int | None = 1000,
+                  rate_object: str | None = None,
+                  log: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
+        """Start-of-run SDO configuration, each step passed to `log` (the run's events): NMT
+        pre-operational; identity and device name; the TPDO mapping; the rate (written if
+        `rate_hz` is given, else left as the node has it) and the heartbeat producer time.
+        Returns what the node reported. DeviceError (one line: node, object, abort code) on an
+        SDO abort or timeout, or an EDS without an object the run needs."""
+        log = log or (lambda event: None)
+        self.enter_pre_operational()
+        log({"event": "accel_config", "step": "nmt", "state": "pre-operational"})
+        ident = self.identity()
+        log({"event": "accel_config", "step": "identity", **ident})
+        layout = self.read_mapping()
+        log({"event": "accel_config", "step": "mapping", "mapping": layout.describe(),
+             "layout": layout.to_dict()})
+        index, sub = self._rate_object(rate_object)
+        if rate_hz is not None:
+            value = round(1000.0 / rate_hz) if 0x1800 <= index < 0x1A00 and sub == 5 else round(rate_hz)
+            self.sdo_write(index, sub, int(value))
+        self.rate_hz = self.read_rate(rate_object)
+        log({"event": "accel_config", "step": "rate", "object": f"{index:04X}:{sub}", "rate_hz": self.rate_hz,
+             "written": rate_hz is not None, "after_run": "left as configured (a reset node restores it)"})
+        if heartbeat_ms is not None:
+            self.sdo_write(0x1017, 0, int(heartbeat_ms))
+        hb = int(self.sdo_read(0x1017, 0))
+        log({"event": "accel_config", "step": "heartbeat", "producer_ms": hb,
+             "written": heartbeat_ms is not None, "after_run": "left as configured"})
+        return {"identity": ident, "mapping": layout.describe(), "rate_hz": self.rate_hz, "heartbeat_ms": hb}
+
+    # -- waiting -----------------------------------------------------------------------------
     def wait_heartbeat(self, timeout_s: float = 3.0, fresh: bool = True) -> int:
         """Wait for the node's next heartbeat (or, with ``fresh=False``, any seen) → its state byte."""
         with self._lock:
@@ -277,7 +513,7 @@ class Accelerometer:
                 "bitrate right?",
             )
             raw = self._decoder.drain(n)
-        return samples_to_block(raw, self.codec)
+        return samples_to_block(raw, self._decoder.layout)
 
     def discard_pending(self) -> int:
         """Drop paired samples not read yet; returns how many."""
