@@ -46,6 +46,10 @@ class ImuConfig:
     port: str = ""
     rate_hz: int = 1000
     baudrate: int = 921600
+    link_timeout_s: float = 1.0
+    """Host seconds without a byte after which the stream counts as paused (its length unknown: the
+    7-bit sequence aliases every 128 samples). Bytes a USB adapter holds back and then bursts are
+    no pause; lost samples are decided by the sequence counter."""
 
 
 @dataclass
@@ -217,6 +221,8 @@ def _validate(cfg: BenchConfig) -> None:
         f"use one of {', '.join(map(str, IMU_RATES_HZ))}",
     )
     need(i.baudrate > 0, "[imu] baudrate", i.baudrate, "use a positive baud rate")
+    need(math.isfinite(i.link_timeout_s) and i.link_timeout_s > 0, "[imu] link_timeout_s", i.link_timeout_s,
+         "use a positive time in s (1 s suits a USB-serial adapter)")
     need(
         bool(a.interface),
         "[accelerometer] interface",

@@ -314,12 +314,12 @@ def faults_summary(events: Sequence[dict[str, Any]]) -> dict[str, Any]:
     imu["reconnects"] = int(sum(int(e.get("imu_reconnects", 0)) for e in stats))
     imu["stalls"] = int(sum(int(e.get("imu_stalls", 0)) for e in stats))
     imu["lost_in_dwells"] = int(sum(int(e["imu"]["lost"]) for e in kept))
-    axes = next((str(e["imu_axes"]) for e in stats if "imu_axes" in e), "xyz")
-    imu["gyro_axes"] = axes
-    imu["invalid_samples"] = {
-        f"{kind}{a}": int(sum(int(e.get("imu", {}).get(f"invalid_{kind}{a}", 0)) for e in stats))
-        for kind in ("g", "a") for a in "xyz"
-        if any(f"invalid_{kind}{a}" in e.get("imu", {}) for e in stats) and (kind == "a" or a in axes)
+    gyro_axes = next((str(e["imu_axes"]) for e in stats if "imu_axes" in e), "xyz")
+    accel_axes = next((str(e["imu_accel_axes"]) for e in stats if "imu_accel_axes" in e), "xyz")
+    imu["gyro_axes"], imu["accel_axes"] = gyro_axes, accel_axes
+    names = [f"g{a}" for a in gyro_axes] + [f"a{a}" for a in accel_axes]
+    imu["invalid_samples"] = {  # per axis the unit has: frames flagged not valid in the stream
+        k: int(sum(int(e.get("imu", {}).get(f"invalid_{k}", 0)) for e in stats)) for k in names
     }
     imu["invalid_in_dwells"] = int(sum(sum(e["imu"].get("invalid", {}).values()) for e in kept))
     accel: dict[str, Any] = {

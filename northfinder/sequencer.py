@@ -700,6 +700,7 @@ class Sequencer:
                 "imu_reconnects": int(getattr(self.imu, "reconnects", 0)),
                 "imu_stalls": len(getattr(self.imu, "stall_indices", [])),
                 "imu_axes": self._gyro_axes(),
+                "imu_accel_axes": getattr(getattr(self.imu, "axes", None), "accel", "xyz"),
                 "accel": acc_stats.as_dict() if hasattr(acc_stats, "as_dict") else dict(vars(acc_stats)),
                 "emergencies": emcy,
             }

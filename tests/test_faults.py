@@ -74,7 +74,7 @@ def _sim_config(faults: list[str], seed: int = 3) -> object:
 
 
 def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS, dwell_s: float = DWELL_S,
-                during_dwell=None, **seq_kwargs) -> dict:
+                during_dwell=None, link_timeout_s: float = 1.0, **seq_kwargs) -> dict:
     """One find on an in-process firmware_sim with `faults`; the result (or RunFailed raised).
 
     `during_dwell(sim, progress)` is called on every dwell progress report: a fault that must start
@@ -92,6 +92,7 @@ def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS,
         cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
         cfg.run.positions = positions
         cfg.run.dwell_s = dwell_s
+        cfg.imu.link_timeout_s = link_timeout_s
         cfg.validate()
         settings = SimSettings(**TRUTH, time_scale=TIME_SCALE)
         return measure(cfg, RunDir(run_dir), settings=settings, report=False, progress=False,
@@ -242,8 +243,12 @@ def _silence_in_position_3(sim, p) -> None:
 def run_b(tmp_path_factory) -> tuple[Path, dict]:
     run_dir = tmp_path_factory.mktemp("faults") / "run_b"
     # the link drops near position 6 (after ~39 s; any phase: the next read sees it)
+    # A 2 s device silence lasts 2/TIME_SCALE s of host time here; a real unit's lasts 2 s, well over
+    # the default link timeout (1 s). The link timeout is host time, so at TIME_SCALE× it is scaled
+    # the same way (1 s device): otherwise the silence (2000 samples, seen as an 80-sample
+    # sequence gap: the 7-bit counter aliases) could not be told from a held-back burst.
     return run_dir, _in_process(run_dir, ["imu-disconnect=39:1"], positions=7,
-                                during_dwell=_silence_in_position_3)
+                                during_dwell=_silence_in_position_3, link_timeout_s=1.0 / TIME_SCALE)
 
 
 def test_imu_silent_mid_dwell_is_detected_and_the_dwell_measured_again(run_b):

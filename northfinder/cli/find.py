@@ -159,6 +159,7 @@ def open_bench(
                     baudrate=cfg.imu.baudrate,
                     timeout_s=5.0,
                     raw_log=rundir.imu_raw_path if rundir else None,
+                    link_timeout_s=cfg.imu.link_timeout_s,
                 ),
             )
         )
@@ -334,7 +335,7 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
         pos.add_row(
             str(i),
             f"{p['table_angle_deg']:.3f}",
-            *(f"{v:+.4f}" for v in g),
+            *("—" if v is None or v != v else f"{v:+.4f}" for v in g),  # an axis the unit lacks
             *("—" if v is None else f"{v * 1e3:+.3f}" for v in a),
             str(p["samples"]),
             str(p["lost_samples"]),
