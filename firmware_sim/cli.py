@@ -97,6 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="metres in b: the IMU's from the centre of rotation (bench, ship; ship default "
                    "1,2,1.5), the GNSS antenna's from the IMU (vehicle; default 0.5,1.5,1.2)")
     p.add_argument("--imu-rate", type=int, metavar="HZ", help="IMU data rate (default 1000; vehicle 250)")
+    p.add_argument("--accel-rate", type=float, metavar="HZ", help="CAN accelerometer rate, 1…1000 (100)")
+    p.add_argument("--accel-mapping", choices=("default", "swapped"),
+                   help="CAN accelerometer TPDO mapping (swapped: axes reordered, 0.1 µg scale)")
     p.add_argument("--truth-log", metavar="PATH", help="write the truth as JSON lines (docs/simulator.md)")
     p.add_argument("--truth-rate", type=float, metavar="HZ", help="truth samples per device second (50)")
     p.add_argument("--config", metavar="FILE.toml", help="the other settings (keys as SimConfig)")
@@ -125,7 +128,8 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
     for flag, key in (("heading", "heading_deg"), ("pitch", "pitch_deg"), ("roll", "roll_deg"),
                       ("latitude", "latitude_deg"), ("grade", "grade"), ("seed", "seed"),
                       ("time_scale", "time_scale"), ("scenario", "scenario"), ("imu_rate", "imu_rate_hz"),
-                      ("truth_log", "truth_log"), ("truth_rate", "truth_rate_hz")):
+                      ("truth_log", "truth_log"), ("truth_rate", "truth_rate_hz"),
+                      ("accel_rate", "accel_rate_hz"), ("accel_mapping", "accel_mapping")):
         value = getattr(args, flag)
         if value is not None:
             data[key] = value

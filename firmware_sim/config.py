@@ -92,6 +92,8 @@ class SimConfig:
     can_bitrate: int = 500000
     can_node_id: int = 0x10
     accel_rate_hz: float = 100.0
+    accel_mapping: str = "default"
+    """The node's TPDO mapping: default (PROTOCOLS.md §3) or swapped (axes reordered, 0.1 µg)."""
     accel_lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     accel_enabled: bool = True
     # platform motion and faults
@@ -201,8 +203,10 @@ def check(cfg: SimConfig) -> None:
                           f"e.g. can_channel = {example!r}")
     if not 1 <= cfg.can_node_id <= 127:
         raise ConfigError(f"can_node_id = {cfg.can_node_id}: give a CANopen node id 1..127")
-    if cfg.accel_rate_hz <= 0.0:
-        raise ConfigError(f"accel_rate_hz = {cfg.accel_rate_hz}: give a rate > 0")
+    if not 1.0 <= cfg.accel_rate_hz <= 1000.0 or cfg.accel_rate_hz != int(cfg.accel_rate_hz):
+        raise ConfigError(f"accel_rate_hz = {cfg.accel_rate_hz}: give a whole rate in 1…1000 Hz (0x2100)")
+    if cfg.accel_mapping not in ("default", "swapped"):
+        raise ConfigError(f"accel_mapping = {cfg.accel_mapping!r}: use default or swapped")
     if cfg.gnss_rate_hz not in GNSS_RATES_HZ:
         raise ConfigError(f"gnss_rate_hz = {cfg.gnss_rate_hz}: use one of {GNSS_RATES_HZ}")
     gnss_start(cfg)

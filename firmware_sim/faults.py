@@ -36,6 +36,8 @@ class Faults:
     """(at_s, code): the CAN accelerometer sends an emergency (code 0x5000 unless given)."""
     accel_heartbeat_loss: float | None = None
     """Device time from which the CAN accelerometer sends no heartbeat."""
+    accel_sdo_silent: float | None = None
+    """Device time from which the CAN accelerometer answers no SDO request."""
     disturbance: tuple[float, float, float] | None = None
     """(start_s, duration_s, amplitude_deg): a knock on the platform."""
     gnss_bad_checksum_rate: float = 0.0
@@ -64,6 +66,8 @@ class Faults:
             out["accel-emcy"] = f"{self.accel_emcy[0]!r}:{self.accel_emcy[1]:#06x}"
         if self.accel_heartbeat_loss is not None:
             out["accel-heartbeat-loss"] = self.accel_heartbeat_loss
+        if self.accel_sdo_silent is not None:
+            out["accel-sdo-silent"] = self.accel_sdo_silent
         return out
 
 
@@ -76,6 +80,7 @@ _DOC = {
     "accel-loss-rate": "a probability 0..1, e.g. accel-loss-rate=0.01",
     "accel-emcy": "AT_S or AT_S:CODE (device seconds, CANopen code), e.g. accel-emcy=3:0x5000",
     "accel-heartbeat-loss": "AT_S in device seconds, e.g. accel-heartbeat-loss=4",
+    "accel-sdo-silent": "AT_S in device seconds, e.g. accel-sdo-silent=0",
     "disturbance": "START_S:DURATION_S:AMPLITUDE_DEG, e.g. disturbance=20:0.5:0.1",
     "gnss-bad-checksum-rate": "a probability 0..1 per NMEA sentence, e.g. gnss-bad-checksum-rate=0.01",
     "gnss-truncate-rate": "a probability 0..1 per NMEA sentence, e.g. gnss-truncate-rate=0.01",
@@ -144,7 +149,7 @@ def parse_fault(name: str, value: object) -> tuple[str, object]:
         if not 0 <= code <= 0xFFFF:
             raise FaultError(f"fault {key}={text}: CODE must fit 16 bits; expected {_DOC[key]}")
         parsed = (at_s, code)
-    elif key == "accel-heartbeat-loss":
+    elif key in ("accel-heartbeat-loss", "accel-sdo-silent"):
         (parsed,) = _floats(key, text, 1, 1)
     else:  # disturbance
         start, dur, amp = _floats(key, text, 3, 3)

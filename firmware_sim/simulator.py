@@ -436,10 +436,13 @@ class Simulator:
             node_bus = can.Bus(interface="socketcan", channel=cfg.can_channel)
             self._buses.append(node_bus)
         accel_model = self._models(streams[_STREAM_CAN_ACCEL], "accel", cfg.accel_rate_hz)
+        # a rate written over SDO gets a model for that rate, from a new child of the same stream
+        remodel = lambda hz: self._models(streams[_STREAM_CAN_ACCEL].spawn(1)[0], "accel", hz)  # noqa: E731
         self.accelerometer = CanAccelNode(
             node_bus, self.world, accel_model, node_id=cfg.can_node_id, rate_hz=cfg.accel_rate_hz,
             lever_arm_b_m=cfg.accel_lever_arm_m, faults=cfg.faults.for_accel(),
             temperature_c=cfg.imu_temperature_c, rng=np.random.default_rng(streams[_STREAM_CAN_FAULTS]),
+            mapping=cfg.accel_mapping, make_model=remodel,
         )
         if self.can_adapter is not None:
             self.devices.append(self.can_adapter)

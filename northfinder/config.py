@@ -60,8 +60,16 @@ class AccelerometerConfig:
     channel: str = ""
     bitrate: int = 500_000
     node_id: int = 0x10
-    rate_hz: float = 100.0
-    """The node's TPDO rate; the dwell is collected as dwell_s·rate_hz samples."""
+    rate_hz: float = 0.0
+    """The sample rate written to the node over SDO at the start of a run; 0 (default) leaves the
+    node's own rate, read back over SDO. The dwell is collected as dwell_s·rate samples."""
+    eds: str = ""
+    """The node's EDS file (default: northfinder's reference node, data/accelerometer.eds)."""
+    rate_object: str = "2100:0"
+    """The object that holds the rate: a manufacturer's rate in Hz (index:sub, hex), or a TPDO event
+    timer such as 1800:5 (ms)."""
+    heartbeat_ms: int = 1000
+    """Producer heartbeat time written to 0x1017 at the start of a run (0: off — not advised)."""
     bus_options: dict[str, Any] = field(default_factory=dict)
     """Extra python-can bus arguments, e.g. `{sleep_after_open = 0.1}` for an slcan adapter that
     does not reset when its port opens (python-can waits 2 s by default)."""
@@ -237,11 +245,14 @@ def _validate(cfg: BenchConfig) -> None:
     )
     need(1 <= a.node_id <= 127, "[accelerometer] node_id", a.node_id, "use 1…127")
     need(
-        math.isfinite(a.rate_hz) and a.rate_hz > 0,
+        math.isfinite(a.rate_hz) and 0 <= a.rate_hz <= 1000,
         "[accelerometer] rate_hz",
         a.rate_hz,
-        "use a positive rate in Hz",
+        "use a rate in Hz up to 1000, or 0 to keep the node's own",
     )
+    need(_is_object(a.rate_object), "[accelerometer] rate_object", a.rate_object,
+         "name an object as INDEX:SUB in hex, e.g. 2100:0 or 1800:5")
+    need(0 <= a.heartbeat_ms <= 0xFFFF, "[accelerometer] heartbeat_ms", a.heartbeat_ms, "use 0…65535")
     if not math.isnan(site.latitude_deg):
         need(
             -89.0 <= site.latitude_deg <= 89.0,
@@ -283,6 +294,26 @@ def _validate(cfg: BenchConfig) -> None:
         "use a rate greater than 0 deg/h",
     )
     need(e.method in METHODS, "[estimator] method", e.method, f"use one of {', '.join(METHODS)}")
+
+
+def accel_eds_path(cfg: BenchConfig) -> Path | None:
+    """`[accelerometer] eds`, relative to the bench file's folder; None: the reference node's EDS."""
+    eds = cfg.accelerometer.eds
+    if not eds:
+        return None
+    path = Path(eds).expanduser()
+    source = Path(cfg.source)
+    if not path.is_absolute() and source.is_file():
+        path = source.parent / path
+    return path
+
+
+def _is_object(text: str) -> bool:
+    index, sep, sub = text.partition(":")
+    try:
+        return bool(sep) and 0 < int(index, 16) <= 0xFFFF and 0 <= int(sub, 16) <= 0xFF
+    except ValueError:
+        return False
 
 
 def require_ports(cfg: BenchConfig) -> None:

@@ -395,7 +395,8 @@ def _decode_session(rd: RunDir, session: int, start: dict[str, Any]) -> tuple[An
     can_path = rd.file(session_file(CAN_LOG, session))
     accel_block = None
     if can_path.exists():
-        accel_block, _ = decode_can_log(can_path, node_id=start["accelerometer"]["node_id"])
+        accel_block, _ = decode_can_log(can_path, node_id=start["accelerometer"]["node_id"],
+                                        layout=start["accelerometer"].get("layout"))
     return block, accel_block
 
 

@@ -62,12 +62,22 @@ def probe_accelerometer(cfg: bench.BenchConfig) -> str:
 
     a = cfg.accelerometer
     with Accelerometer(
-        a.interface, a.channel, bitrate=a.bitrate, node_id=a.node_id, bus_options=a.bus_options or None
+        a.interface, a.channel, bitrate=a.bitrate, node_id=a.node_id, bus_options=a.bus_options or None,
+        eds_path=bench.accel_eds_path(cfg),
     ) as acc:
         state = acc.wait_heartbeat(timeout_s=3.0)
+        if state == 0x04:  # stopped: CiA 301 has no SDO there; pre-operational changes nothing else
+            acc.enter_pre_operational()
+        ident = acc.identity()  # SDO, read only: check writes nothing to the node
+        layout = acc.read_mapping()
+        rate_hz = acc.read_rate(a.rate_object)
     name = HEARTBEAT_STATES.get(state, f"unknown 0x{state:02X}")
     return (
-        f"accelerometer node 0x{a.node_id:02X} on {a.interface} {a.channel}: heartbeat {name} (0x{state:02X})"
+        f"accelerometer node 0x{a.node_id:02X} on {a.interface} {a.channel}: heartbeat {name} "
+        f"(0x{state:02X}); "
+        f"{ident['device_name']!r}, vendor ID 0x{ident['vendor_id']:08X}, product code "
+        f"0x{ident['product_code']:08X}, revision 0x{ident['revision']:08X}, serial number "
+        f"0x{ident['serial_number']:08X}; rate {rate_hz:g} Hz ({a.rate_object}); mapping {layout.describe()}"
     )
 
 

@@ -1,0 +1,353 @@
+"""CANopen SDO (PROTOCOLS.md §3.1): firmware_sim's SDO server on the device side, and the driver on
+python-canopen configuring a node and decoding samples by the mapping the node reports.
+
+Device-side tests speak raw frames on a python-can `virtual` bus (no northfinder, no canopen
+library). Driver tests run the simulated node on a device clock in a thread (`virtual` bus).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import re
+import struct
+import sys
+import threading
+import time
+from pathlib import Path
+
+import can
+import canopen
+import cantools
+import numpy as np
+import pytest
+
+from firmware_sim.devices import canopen_accel as ca
+from firmware_sim.devices.canopen_accel import CanAccelNode
+from northfinder.codecs.canopen import DEFAULT_DBC_PATH, default_layout
+from northfinder.drivers.accelerometer import DEFAULT_EDS_PATH, Accelerometer, layout_from_node
+from northfinder.errors import DeviceError
+
+sys.path.insert(0, os.path.dirname(__file__))
+from test_sim_can import PerfectAccel, StandInWorld  # noqa: E402
+
+NODE = 0x10
+SWAPPED_EDS = Path(__file__).parent / "data" / "accel_swapped.eds"
+F0_M_S2 = (0.8, -1.7, 9.6)  # distinct x, y, z so that an axis mix-up shows
+G0 = 9.80665
+_channels = itertools.count()
+
+
+def _record_send_times(node: CanAccelNode) -> list[tuple[float, int]]:
+    """(device time, id) of every frame the node sends (the virtual bus stamps host time)."""
+    sent: list[tuple[float, int]] = []
+    send = node._send
+
+    def spy(t_s, arbitration_id, data):
+        sent.append((t_s, arbitration_id))
+        send(t_s, arbitration_id, data)
+
+    node._send = spy
+    return sent
+
+
+def _buses():
+    ch = f"sdo-test-{os.getpid()}-{next(_channels)}"
+    return ch, can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
+
+
+# ---------------------------------------------------------------------------------------------
+# Device side: raw SDO frames against the node
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture
+def raw_node():
+    _, node_bus, client = _buses()
+    node = CanAccelNode(node_bus, StandInWorld(), PerfectAccel(), node_id=NODE, rate_hz=100.0)
+    sent = _record_send_times(node)
+    node.advance(0.0)
+    while client.recv(timeout=0) is not None:
+        pass
+    clock = {"t": 0.0}
+
+    def ask(payload: bytes, dt_s: float = 0.001) -> can.Message | None:
+        client.send(can.Message(arbitration_id=0x600 + NODE, data=payload, is_extended_id=False))
+        t_req = clock["t"] + dt_s
+        clock["t"] = t_req
+        node.advance(t_req)
+        for msg in iter(lambda: client.recv(timeout=0), None):
+            if msg.arbitration_id == 0x580 + NODE:
+                t_answer = [t for t, i in sent if i == 0x580 + NODE][-1]
+                assert 0 <= t_answer - (t_req - dt_s) <= 0.010  # answered within 10 ms of device time
+                return msg
+        return None
+
+    yield node, client, ask
+    node.close()
+    node_bus.shutdown()
+    client.shutdown()
+
+
+def _abort(msg: can.Message) -> tuple[int, int, int]:
+    cmd, index, sub, code = struct.unpack("<BHBI", bytes(msg.data))
+    assert cmd == 0x80 and len(msg.data) == 8
+    return index, sub, code
+
+
+def test_expedited_and_segmented_upload(raw_node):
+    node, _, ask = raw_node
+    r = ask(ca.sdo_upload_request(0x1018, 1))
+    assert bytes(r.data) == struct.pack("<BHBI", 0x43, 0x1018, 1, ca.VENDOR_ID)
+    r = ask(ca.sdo_upload_request(0x2100, 0))
+    assert bytes(r.data[:6]) == struct.pack("<BHBH", 0x4B, 0x2100, 0, 100)
+    r = ask(ca.sdo_upload_request(0x1008, 0))
+    name = ca.DEVICE_NAME.encode()
+    assert bytes(r.data) == struct.pack("<BHBI", 0x41, 0x1008, 0, len(name))
+    got, toggle = b"", 0
+    while True:
+        r = ask(bytes((0x60 | toggle << 4,)) + bytes(7))
+        head = r.data[0]
+        assert head >> 4 & 1 == toggle and head >> 5 == 0
+        got += bytes(r.data[1 : 8 - (head >> 1 & 7)])
+        toggle ^= 1
+        if head & 1:
+            break
+    assert got == name
+    r = ask(bytes((0x60 | toggle << 4,)) + bytes(7))  # no transfer going on any more
+    assert _abort(r)[2] == ca.ABORT_COMMAND
+
+
+@pytest.mark.parametrize("payload, code", [
+    (ca.sdo_upload_request(0x2200, 0), ca.ABORT_NO_OBJECT),
+    (ca.sdo_upload_request(0x1018, 9), ca.ABORT_NO_SUBINDEX),
+    (ca.sdo_download_request(0x1018, 1, b"\1\0\0\0"), ca.ABORT_READ_ONLY),
+    (ca.sdo_download_request(0x2100, 0, b"\x32\0\0\0"), ca.ABORT_LENGTH),  # u16 written with 4 bytes
+    (ca.sdo_download_request(0x2100, 0, struct.pack("<H", 1001)), ca.ABORT_RANGE),
+    (ca.sdo_download_request(0x2100, 0, struct.pack("<H", 0)), ca.ABORT_RANGE),
+    (ca.sdo_download_request(0x1A00, 1, struct.pack("<I", 0x20020020)), ca.ABORT_RANGE),  # 8-bit as 32
+    (bytes((0xE0,)) + bytes(7), ca.ABORT_COMMAND),
+])
+def test_aborts(raw_node, payload, code):
+    node, _, ask = raw_node
+    index, sub = struct.unpack_from("<HB", payload, 1)
+    assert _abort(ask(payload)) == (index, sub, code)
+    assert node.od[(0x2100, 0)].value == 100  # nothing changed
+
+
+def test_mapping_and_rate_writes_follow_the_state(raw_node):
+    node, client, ask = raw_node
+    # pre-operational: a third 32-bit object in TPDO1 would make 96 bits
+    # pre-operational: an entry past the count is accepted; counting it in (96 bits) is not
+    assert ask(ca.sdo_download_request(0x1A00, 3, struct.pack("<I", 0x20000320))).data[0] == 0x60
+    assert _abort(ask(ca.sdo_download_request(0x1A00, 0, b"\x03")))[2] == ca.ABORT_LENGTH
+    assert node.od[(0x1A00, 0)].value == 2
+    r = ask(ca.sdo_download_request(0x2100, 0, struct.pack("<H", 50)))
+    assert bytes(r.data) == struct.pack("<BHB4x", 0x60, 0x2100, 0) and node.rate_hz == 50.0
+    client.send(can.Message(arbitration_id=0, data=[0x01, NODE], is_extended_id=False))
+    for code_payload in (ca.sdo_download_request(0x2100, 0, struct.pack("<H", 25)),
+                         ca.sdo_download_request(0x1A01, 0, b"\x02")):
+        assert _abort(ask(code_payload))[2] == ca.ABORT_STATE
+    assert node.rate_hz == 50.0 and node.od[(0x1A01, 0)].value == 4
+    r = ask(ca.sdo_download_request(0x1017, 0, struct.pack("<H", 500)))  # rw in every state
+    assert r.data[0] == 0x60 and node.heartbeat_period_s == 0.5
+
+
+def test_rate_write_moves_the_device_clock_of_the_samples():
+    _, node_bus, client = _buses()
+    node = CanAccelNode(node_bus, StandInWorld(), PerfectAccel(), node_id=NODE, rate_hz=100.0)
+    sent = _record_send_times(node)
+    node.advance(0.0)
+    client.send(can.Message(arbitration_id=0x600 + NODE, data=ca.sdo_download_request(0x2100, 0, b"\x19\0"),
+                            is_extended_id=False))
+    node.advance(0.0105)
+    client.send(can.Message(arbitration_id=0, data=[0x01, NODE], is_extended_id=False))
+    node.advance(0.02)
+    for t in np.arange(0.03, 1.0, 0.01):
+        node.advance(float(t))
+    times = np.array([t for t, i in sent if i == 0x290])
+    assert len(times) >= 20 and np.allclose(np.diff(times), 1 / 25)
+    node_bus.shutdown()
+    client.shutdown()
+
+
+def test_swapped_mapping_frames():
+    _, node_bus, client = _buses()
+    world = StandInWorld(F0_M_S2)
+    node = CanAccelNode(node_bus, world, PerfectAccel(), node_id=NODE, rate_hz=100.0, mapping="swapped")
+    node.advance(0.0)
+    client.send(can.Message(arbitration_id=0, data=[0x01, NODE], is_extended_id=False))
+    node.advance(0.001)
+    node.advance(0.031)
+    frames = [m for m in iter(lambda: client.recv(timeout=0), None) if m.arbitration_id in (0x190, 0x290)]
+    z, x = struct.unpack("<ii", bytes(frames[0].data))
+    y, status, counter, temp = struct.unpack("<iBBh", bytes(frames[1].data))
+    want = np.rint(np.asarray(F0_M_S2) / G0 * 1e7)
+    assert (x, y, z) == tuple(int(v) for v in want) and (status, counter, temp) == (7, 0, 2500)
+    node_bus.shutdown()
+    client.shutdown()
+
+
+# ---------------------------------------------------------------------------------------------
+# The EDS, the simulator's dictionary and the DBC agree
+# ---------------------------------------------------------------------------------------------
+_KINDS = {0x5: "u8", 0x6: "u16", 0x7: "u32", 0x3: "i16", 0x4: "i32", 0x9: "vs"}
+
+
+@pytest.mark.parametrize("eds, mapping, rate", [(DEFAULT_EDS_PATH, "default", 100), (SWAPPED_EDS, "swapped", 25)])
+def test_eds_matches_the_simulated_dictionary(eds, mapping, rate):
+    od = canopen.import_od(str(eds), NODE)
+    sim = ca.build_object_dictionary(NODE, mapping, rate)
+    seen = set()
+    for obj in od.values():
+        subs = [obj] if isinstance(obj, canopen.objectdictionary.ODVariable) else list(obj.values())
+        for var in subs:
+            key = (var.index, var.subindex)
+            seen.add(key)
+            assert key in sim, f"{var.index:04X}:{var.subindex} in the EDS, not in the node"
+            entry = sim[key]
+            assert _KINDS[var.data_type] == entry.kind, key
+            assert var.writable == (entry.access != "ro"), key
+            if not entry.mappable:
+                assert var.default == entry.value, key
+    assert seen == set(sim)  # and nothing in the node that the EDS does not describe
+
+
+def test_dbc_matches_the_eds_mapping():
+    """The DBC (for raw CAN logs in common tools) says what the EDS's default mapping says."""
+    node = canopen.RemoteNode(NODE, str(DEFAULT_EDS_PATH))
+    canopen.Network().add_node(node)  # no bus: the mapping comes from the EDS defaults
+    node.tpdo.read(from_od=True)
+    layout = layout_from_node(node)
+    assert layout == default_layout(NODE)
+    db = cantools.database.load_file(str(DEFAULT_DBC_PATH))
+    for tpdo in layout.tpdos:
+        msg = db.get_message_by_frame_id(tpdo.cob_id)
+        assert msg.length == tpdo.length
+        start = 0
+        for obj, sig in zip(tpdo.objects, msg.signals, strict=True):
+            assert (sig.start, sig.length, sig.is_signed) == (start, obj.bits, obj.signed)
+            scale = sig.scale if sig.unit in ("g", "degC") else 1.0
+            assert scale == pytest.approx(obj.scale), sig.name
+            start += obj.bits
+
+
+# ---------------------------------------------------------------------------------------------
+# The driver against the simulated node
+# ---------------------------------------------------------------------------------------------
+class _Clocked:
+    """The node advanced on a device clock (1× host time) in a thread."""
+
+    def __init__(self, **kw):
+        self.channel, self.bus, self.extra = _buses()
+        self.extra.shutdown()
+        self.world = StandInWorld(F0_M_S2)
+        self.node = CanAccelNode(self.bus, self.world, PerfectAccel(), node_id=NODE, **kw)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _loop(self):
+        t0 = time.monotonic()
+        while not self._stop.is_set():
+            self.node.advance(time.monotonic() - t0)
+            time.sleep(0.001)
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(2)
+        self.bus.shutdown()
+
+
+@pytest.fixture
+def clocked(request):
+    sims = []
+
+    def make(**kw):
+        sims.append(_Clocked(**kw))
+        return sims[-1]
+
+    yield make
+    for s in sims:
+        s.close()
+
+
+def _line(exc: DeviceError) -> str:
+    text = str(exc)
+    assert "\n" not in text
+    return text
+
+
+@pytest.mark.parametrize("mapping, eds", [("default", None), ("swapped", SWAPPED_EDS)])
+def test_driver_configures_and_decodes_by_the_nodes_mapping(clocked, mapping, eds):
+    sim = clocked(rate_hz=100.0 if mapping == "default" else 25.0, mapping=mapping)
+    events = []
+    with Accelerometer("virtual", sim.channel, eds_path=eds) as acc:
+        acc.wait_heartbeat(timeout_s=3)
+        info = acc.configure(rate_hz=None, log=events.append)
+        assert info["identity"] == {"vendor_id": ca.VENDOR_ID, "product_code": ca.PRODUCT_CODE,
+                                    "revision": ca.REVISION, "serial_number": ca.SERIAL_NUMBER,
+                                    "device_name": ca.DEVICE_NAME}
+        assert acc.rate_hz == sim.node.rate_hz  # read from the node, not assumed
+        acc.start_node()
+        block = acc.read(10, timeout_s=5)
+    assert [e["step"] for e in events] == ["nmt", "identity", "mapping", "rate", "heartbeat"]
+    resolution_g = 1e-6 if mapping == "default" else 1e-7
+    want = np.asarray(F0_M_S2) / G0
+    assert np.all(np.abs(block.accel_g - want) <= resolution_g / 2 + 1e-12)
+    assert block.lost_samples == 0 and np.all(block.temperature_c == 25.0) and np.all(block.status == 7)
+    assert np.all(np.diff(block.counter) == 1)
+
+
+def test_driver_writes_rate_and_heartbeat(clocked):
+    sim = clocked(rate_hz=100.0)
+    with Accelerometer("virtual", sim.channel) as acc:
+        acc.wait_heartbeat(timeout_s=3)
+        info = acc.configure(rate_hz=40, heartbeat_ms=500)
+    assert (info["rate_hz"], info["heartbeat_ms"]) == (40.0, 500)
+    assert sim.node.rate_hz == 40.0 and sim.node.heartbeat_period_s == 0.5
+
+
+def test_sdo_aborts_are_one_line_naming_node_object_and_code(clocked, tmp_path):
+    sim = clocked(rate_hz=100.0)
+    wrong = tmp_path / "wrong_type.eds"  # a user EDS that calls the rate a u32: the node says length
+    text = DEFAULT_EDS_PATH.read_text()
+    wrong.write_text(re.sub(r"(\[2100\]\nParameterName=Sample rate\nObjectType=0x7\nDataType=)0x0006",
+                            r"\g<1>0x0007", text))
+    with Accelerometer("virtual", sim.channel, eds_path=wrong) as acc:
+        acc.wait_heartbeat(timeout_s=3)
+        with pytest.raises(DeviceError) as unknown:
+            acc.sdo_read(0x2200, 0, need_eds=False)
+        with pytest.raises(DeviceError) as length:
+            acc.configure(rate_hz=50)
+        acc.start_node()  # nothing lost: the node and the driver go on
+        block = acc.read(5, timeout_s=5)
+    assert re.search(r"node 0x10 .*object 2200:0 aborted with 0x06020000", _line(unknown.value))
+    assert re.search(r"node 0x10 .*object 2100:0 \(Sample rate\) aborted with 0x06070010", _line(length.value))
+    assert len(block) == 5 and block.lost_samples == 0 and sim.node.rate_hz == 100.0
+
+
+def test_sdo_timeout_with_the_node_silent(clocked):
+    sim = clocked(rate_hz=100.0, faults={"accel-sdo-silent": 0.0})
+    with Accelerometer("virtual", sim.channel, sdo_timeout_s=0.3) as acc:
+        acc.wait_heartbeat(timeout_s=3)
+        t0 = time.monotonic()
+        with pytest.raises(DeviceError) as exc:
+            acc.configure()
+        assert 0.25 <= time.monotonic() - t0 < 3.0
+        acc.start_node()
+        block = acc.read(5, timeout_s=5)  # NMT and TPDOs still work: nothing lost
+    assert re.search(r"node 0x10 .*object 1018:1 \(Vendor-ID\) within 0.3 s \(abort 0x05040000",
+                     _line(exc.value))
+    assert len(block) == 5 and sim.node.stats.sdo_ignored >= 1
+
+
+def test_eds_without_a_needed_object_is_one_line(clocked, tmp_path):
+    sim = clocked(rate_hz=100.0)
+    eds = tmp_path / "no_rate.eds"
+    text = DEFAULT_EDS_PATH.read_text().replace("5=0x2100\n", "").replace("SupportedObjects=5\n",
+                                                                            "SupportedObjects=4\n")
+    eds.write_text(text[: text.index("[2100]")])
+    with Accelerometer("virtual", sim.channel, eds_path=eds) as acc:
+        acc.wait_heartbeat(timeout_s=3)
+        with pytest.raises(DeviceError) as exc:
+            acc.configure()
+    assert "has no object 2100:0" in _line(exc.value)
