@@ -30,6 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", metavar="PATH", help="write the result JSON here")
     p.add_argument("--out", metavar="RUN_DIR", help="run directory for raw logs and the report")
     p.add_argument("--config", metavar="BENCH_TOML", help="bench configuration for real hardware")
+    p.add_argument("--unit", metavar="LABEL", help="unit under test, recorded in the results history")
     p.add_argument("--simulate", action="store_true", help="start firmware-sim and align on it")
     p.add_argument("--grade", default=None,
                    help="simulated sensor grade (nav, kvh1760, tactical-mems, consumer)")

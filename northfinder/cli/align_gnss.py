@@ -20,6 +20,7 @@ from northfinder.align import gnss_run as gr
 from northfinder.align import gnss_run_live as live
 from northfinder.align import runs
 from northfinder.errors import InputError
+from northfinder.history import record_or_warn
 from northfinder.rundir import RunDir
 
 MIN_DURATION_S = 10.0
@@ -181,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
         )
     t_read = time.monotonic()
     result = live.finish(rd, window, json_path=args.json)
+    record_or_warn(rd.path, unit=getattr(args, "unit", None))  # the results history (an index)
     print_summary(result, run_dir=rd.path)
     t_end = time.monotonic()
     print(

@@ -22,6 +22,7 @@ from northfinder.align import runs
 from northfinder.align import swaying_run as sr
 from northfinder.align.swaying import METHODS, minimum_duration_s
 from northfinder.errors import InputError
+from northfinder.history import record_or_warn
 from northfinder.rundir import RunDir
 
 
@@ -192,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
         )
     t_read = time.monotonic()
     result = sr.finish(rd, window, json_path=args.json)
+    record_or_warn(rd.path, unit=getattr(args, "unit", None))  # the results history (an index)
     print_summary(result, run_dir=rd.path)
     t_end = time.monotonic()
     print(

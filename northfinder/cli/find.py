@@ -21,6 +21,7 @@ from typing import Any
 
 from northfinder import config as bench
 from northfinder.errors import DeviceError, InputError, RunAborted
+from northfinder.history import record_or_warn
 from northfinder.rundir import CONFIG, RESULT, PositionMeans, RunDir, compute_result, faults_summary
 from northfinder.sequencer import Interrupted, Progress, RunFailed, Sequencer, StopFlag
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
@@ -66,6 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", metavar="PATH", help="also write the result JSON here")
     p.add_argument("--out", metavar="RUN_DIR", help="run directory (default: runs/find-<UTC time>)")
     p.add_argument("--no-report", action="store_true", help="skip report.png")
+    p.add_argument("--unit", metavar="LABEL", help="unit under test, recorded in the results history")
     sim = p.add_argument_group("simulation (with --simulate; passed on to firmware-sim)")
     d = SimSettings()
     sim.add_argument("--heading", type=float, default=d.heading_deg, metavar="DEG", help="true heading")
@@ -173,8 +175,7 @@ def open_bench(
                     a.channel,
                     bitrate=a.bitrate,
                     node_id=a.node_id,
-                    rate_hz=a.rate_hz or 100.0,
-                    eds_path=bench.accel_eds_path(cfg),
+                    rate_hz=a.rate_hz,
                     log_path=rundir.can_log_path if rundir else None,
                     bus_options=bus_options or None,
                 ),
@@ -454,6 +455,7 @@ def _measure_and_report(
             else None,
             **measure_kwargs,
         )
+    record_or_warn(rundir.path, unit=getattr(args, "unit", None))  # the results history (an index)
     if not args.no_report:
         from northfinder.report import write_report
 
@@ -532,9 +534,6 @@ def measure(
         if float(cfg.imu.rate_hz) != imu.rate_hz:
             imu.configure(rate_hz=cfg.imu.rate_hz)
         acc.wait_heartbeat()
-        a = cfg.accelerometer  # SDO: identity, mapping, rate, heartbeat time (each step an event)
-        acc_info = acc.configure(rate_hz=a.rate_hz or None, heartbeat_ms=a.heartbeat_ms,
-                                 rate_object=a.rate_object, log=rundir.log_event)
         rundir.log_event(
             {
                 "event": "start",
@@ -556,9 +555,7 @@ def measure(
                     "interface": cfg.accelerometer.interface,
                     "channel": cfg.accelerometer.channel,
                     "node_id": cfg.accelerometer.node_id,
-                    "rate_hz": acc.rate_hz,
-                    "identity": acc_info["identity"],
-                    "layout": acc.layout.to_dict(),
+                    "rate_hz": cfg.accelerometer.rate_hz,
                 },
                 "truth": truth,
             }
@@ -581,7 +578,7 @@ def measure(
             rundir=rundir,
             on_progress=on_progress,
             stop_flag=stop,
-            accel_rate_hz=acc.rate_hz,
+            accel_rate_hz=cfg.accelerometer.rate_hz,
             skip=skip or set(),
             stage_speed_deg_s=cfg.turntable.speed_deg_s,
             stage_settle_s=cfg.turntable.settle_s,
