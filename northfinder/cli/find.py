@@ -175,7 +175,8 @@ def open_bench(
                     a.channel,
                     bitrate=a.bitrate,
                     node_id=a.node_id,
-                    rate_hz=a.rate_hz,
+                    rate_hz=a.rate_hz or 100.0,
+                    eds_path=bench.accel_eds_path(cfg),
                     log_path=rundir.can_log_path if rundir else None,
                     bus_options=bus_options or None,
                 ),
@@ -534,6 +535,9 @@ def measure(
         if float(cfg.imu.rate_hz) != imu.rate_hz:
             imu.configure(rate_hz=cfg.imu.rate_hz)
         acc.wait_heartbeat()
+        a = cfg.accelerometer  # SDO: identity, mapping, rate, heartbeat time (each step an event)
+        acc_info = acc.configure(rate_hz=a.rate_hz or None, heartbeat_ms=a.heartbeat_ms,
+                                 rate_object=a.rate_object, log=rundir.log_event)
         rundir.log_event(
             {
                 "event": "start",
@@ -555,7 +559,9 @@ def measure(
                     "interface": cfg.accelerometer.interface,
                     "channel": cfg.accelerometer.channel,
                     "node_id": cfg.accelerometer.node_id,
-                    "rate_hz": cfg.accelerometer.rate_hz,
+                    "rate_hz": acc.rate_hz,
+                    "identity": acc_info["identity"],
+                    "layout": acc.layout.to_dict(),
                 },
                 "truth": truth,
             }
@@ -578,7 +584,7 @@ def measure(
             rundir=rundir,
             on_progress=on_progress,
             stop_flag=stop,
-            accel_rate_hz=cfg.accelerometer.rate_hz,
+            accel_rate_hz=acc.rate_hz,
             skip=skip or set(),
             stage_speed_deg_s=cfg.turntable.speed_deg_s,
             stage_settle_s=cfg.turntable.settle_s,
