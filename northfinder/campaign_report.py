@@ -1,0 +1,167 @@
+"""A campaign's printed summary (the paper's table 1 layout, every method) and campaign.png."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from northfinder.campaign_stats import ARCMIN_PER_DEG
+
+SHORT = {
+    "exact": "exact",
+    "coordinate_transform": "coord. transform",
+    "vector": "vector",
+    "eq11": "eq 11",
+    "uncompensated": "uncompensated",
+}
+
+
+def _am(v: float | None, fmt: str = "+.3f") -> str:
+    return "—" if v is None else f"{v:{fmt}}′"
+
+
+def _deg(v: float | None, fmt: str = ".4f") -> str:
+    return "—" if v is None else f"{v:{fmt}}"
+
+
+def print_campaign(state: dict[str, Any], console: Any = None) -> None:
+    """Table 1 of the paper, one column per method: each find's deviation from its reference
+    [arc min], then mean (= deviation from the reference), std, RMS, max; then degrees and σ."""
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    if console is None:
+        console = Console()
+        if not console.is_terminal:
+            console = Console(width=max(console.width, 150))
+    stats, runs, main = state.get("statistics", {}), state["runs"], state["method"]
+    methods = list(stats)
+    t = Table(title=escape("campaign: heading − reference azimuth [arc min] (layout of the paper's table 1)"))
+    t.add_column("find")
+    t.add_column(escape("reference [°]"), justify="right")
+    for m in methods:
+        t.add_column(SHORT.get(m, m) + (" *" if m == main else ""), justify="right")
+    t.add_column(escape(f"σ reported ({main})"), justify="right")
+    for r in runs:
+        cells = [
+            _am(float((r["methods"][m] - r["reference_deg"] + 180) % 360 - 180) * ARCMIN_PER_DEG)
+            for m in methods
+        ]
+        t.add_row(
+            r["run_dir"],
+            f"{r['reference_deg']:.3f}",
+            *cells,
+            _am(r["heading_std_deg"] * ARCMIN_PER_DEG, ".3f"),
+        )
+    t.add_section()
+    for label, key, fmt in (
+        ("mean (deviation from reference)", "mean_arcmin", "+.3f"),
+        ("standard deviation", "std_arcmin", ".3f"),
+        ("RMS", "rms_arcmin", ".3f"),
+        ("max |deviation|", "max_abs_arcmin", ".3f"),
+        ("mean reported σ", "mean_reported_sigma_arcmin", ".3f"),
+    ):
+        t.add_row(label, "", *(_am(stats[m].get(key), fmt) for m in methods), "")
+    t.add_row(
+        "std / mean reported σ",
+        "",
+        *(_deg(stats[m].get("observed_over_reported"), ".2f") for m in methods),
+        "",
+    )
+    console.print(t)
+
+    d = Table(title=f"every method in degrees ({len(runs)} finds)")
+    for col in ("method", "mean [°]", "std [°]", "RMS [°]", "max |dev| [°]", "mean σ [°]", "std/σ"):
+        d.add_column(escape(col), justify="right" if col != "method" else "left")
+    for m in methods:
+        s = stats[m]
+        d.add_row(
+            m,
+            _deg(s.get("mean_deg"), "+.5f"),
+            _deg(s.get("std_deg"), ".5f"),
+            _deg(s.get("rms_deg"), ".5f"),
+            _deg(s.get("max_abs_deg"), ".5f"),
+            _deg(s.get("mean_reported_sigma_deg"), ".5f"),
+            _deg(s.get("observed_over_reported"), ".2f"),
+        )
+    console.print(d)
+    steps = state.get("steps", [])
+    if len(steps) > 1:
+        st = Table(title=f"{main} per base heading")
+        for col in ("step", "reference [°]", "n", "mean [′]", "std [′]", "mean σ [′]"):
+            st.add_column(escape(col), justify="right")
+        for s in steps:
+            st.add_row(
+                str(s["step"] + 1),
+                f"{s['reference_deg']:.3f}",
+                str(s["n"]),
+                _am(s.get("mean_arcmin")),
+                _am(s.get("std_arcmin"), ".3f"),
+                _am(s.get("mean_reported_sigma_arcmin"), ".3f"),
+            )
+        console.print(st)
+
+
+def write_figure(state: dict[str, Any], path: str | Path) -> Path:
+    """campaign.png: the main method's deviation per find with its ±1σ bar against the reference
+    (0), a histogram of the deviations with the normal curve of the mean reported σ, and every
+    method's mean ± std and RMS side by side."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs, main, stats = state["runs"], state["method"], state["statistics"]
+    dev = np.array([r["error_deg"] for r in runs]) * ARCMIN_PER_DEG
+    sig = np.array([r["heading_std_deg"] for r in runs]) * ARCMIN_PER_DEG
+    steps = np.array([r["step"] for r in runs])
+    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(16, 5), gridspec_kw={"width_ratios": [2.2, 1, 1.4]})
+    x = np.arange(1, len(runs) + 1)
+    for s in sorted(set(steps.tolist())):
+        k = steps == s
+        ref = state["plan"]["steps"][s]["reference_deg"]
+        a1.errorbar(x[k], dev[k], yerr=sig[k], fmt="o", capsize=3, label=f"step {s + 1}: reference {ref:g}°")
+    a1.axhline(0.0, color="k", lw=1, label="reference azimuth")
+    m = stats[main]
+    a1.axhline(m["mean_arcmin"], color="C3", ls="--", lw=1, label=f"mean {m['mean_arcmin']:+.3f}′")
+    a1.set_xlabel("find")
+    a1.set_ylabel(f"{main} heading − reference [arc min] (bar: reported 1σ)")
+    a1.set_title(
+        f"{len(runs)} finds, {state['plan']['positions']} positions × {state['plan']['dwell_s']:g} s"
+    )
+    a1.legend(fontsize=8)
+    a1.grid(True, alpha=0.3)
+
+    a2.hist(dev, bins=max(5, min(20, len(dev) // 2)), density=True, alpha=0.6, label="finds")
+    if m.get("mean_reported_sigma_arcmin"):
+        s0 = m["mean_reported_sigma_arcmin"]
+        g = np.linspace(dev.min() - 2 * s0, dev.max() + 2 * s0, 200)
+        a2.plot(
+            g,
+            np.exp(-0.5 * ((g - m["mean_arcmin"]) / s0) ** 2) / (s0 * np.sqrt(2 * np.pi)),
+            label=f"N(mean, reported σ {s0:.3f}′)",
+        )
+    a2.set_xlabel("deviation [arc min]")
+    a2.set_title(f"observed std {m['std_arcmin']:.3f}′" if m.get("std_arcmin") is not None else "")
+    a2.legend(fontsize=8)
+    a2.grid(True, alpha=0.3)
+
+    names = list(stats)
+    xi = np.arange(len(names))
+    means = [stats[n]["mean_arcmin"] for n in names]
+    stds = [stats[n]["std_arcmin"] or 0.0 for n in names]
+    a3.errorbar(xi - 0.1, means, yerr=stds, fmt="o", capsize=4, label="mean ± std")
+    a3.plot(xi + 0.1, [stats[n]["rms_arcmin"] for n in names], "s", label="RMS")
+    a3.axhline(0.0, color="k", lw=1)
+    a3.set_xticks(xi, [SHORT.get(n, n) for n in names], rotation=30, ha="right")
+    a3.set_ylabel("deviation from reference [arc min]")
+    a3.set_title("every method")
+    a3.legend(fontsize=8)
+    a3.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
