@@ -74,6 +74,47 @@ def parse_lever_arm(text: str) -> tuple[float, float, float]:
     return values  # type: ignore[return-value]
 
 
+def _numbers(text: str, sep: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(sep)]
+    except ValueError:
+        return []
+    return values if all(math.isfinite(v) for v in values) else []
+
+
+def parse_link_hold(text: str) -> dict[str, float]:
+    """`"5,200"` → hold the IMU and GNSS links every 5 device s for 200 wall ms; `"5,200,1"` adds
+    ±1 s of seeded jitter on the period."""
+    values = _numbers(text, ",")
+    if len(values) not in (2, 3) or values[0] <= 0 or values[1] <= 0 or (len(values) == 3 and not
+                                                                        0 <= values[2] < values[0]):
+        raise ConfigError(f"--link-hold {text}: give PERIOD_S,HOLD_MS[,JITTER_S] (device s, wall ms, "
+                          "0 <= JITTER_S < PERIOD_S), e.g. --link-hold 5,200")
+    out = {"link_hold_period_s": values[0], "link_hold_ms": values[1]}
+    if len(values) == 3:
+        out["link_hold_jitter_s"] = values[2]
+    return out
+
+
+def parse_link_latency(text: str) -> dict[str, float]:
+    """`"20,5"` → 20 ± 5 device ms on the IMU and GNSS links; `"imu=20:5,gnss=100:10"` per device."""
+    example = "e.g. --link-latency 20,5 or --link-latency imu=20:5,gnss=100:10"
+    items = [(d.strip().lower(), v) for d, _, v in (p.partition("=") for p in text.split(","))] \
+        if "=" in text else [("imu", text.replace(",", ":")), ("gnss", text.replace(",", ":"))]
+    out: dict[str, float] = {}
+    for device, value in items:
+        values = _numbers(value, ":")
+        if device not in ("imu", "gnss") or len(values) not in (1, 2):
+            raise ConfigError(f"--link-latency {text}: give MS,JITTER_MS or imu=MS:JITTER_MS,"
+                              f"gnss=MS:JITTER_MS (device ms), {example}")
+        latency, jitter = values[0], (values[1] if len(values) == 2 else 0.0)
+        if latency < 0 or not 0 <= jitter <= latency:
+            raise ConfigError(f"--link-latency {text}: the latency must be >= 0 and the jitter between 0 "
+                              f"and the latency (device ms), {example}")
+        out[f"{device}_link_latency_ms"], out[f"{device}_link_jitter_ms"] = latency, jitter
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="firmware-sim",
@@ -100,6 +141,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--accel-rate", type=float, metavar="HZ", help="CAN accelerometer rate, 1…1000 (100)")
     p.add_argument("--accel-mapping", choices=("default", "swapped"),
                    help="CAN accelerometer TPDO mapping (swapped: axes reordered, 0.1 µg scale)")
+    p.add_argument("--imu-axes", metavar="SPEC",
+                   help="the KVH unit's axes: gyro letters then optional +acc: xyz+acc (default), xyz "
+                   "(gyro-only FOG), y (single-axis FOG), xy, xy+acc")
+    p.add_argument("--link-hold", metavar="PERIOD_S,HOLD_MS",
+                   help="every PERIOD_S device s the IMU/GNSS links hold their bytes for HOLD_MS wall ms, "
+                   "then release them in one burst (optional ,JITTER_S on the period)")
+    p.add_argument("--link-latency", metavar="MS,JITTER_MS",
+                   help="IMU/GNSS messages leave their pty MS ± JITTER_MS device ms after they were made "
+                   "(order kept); per device: imu=MS:J,gnss=MS:J")
+    p.add_argument("--stage-speed", type=float, metavar="DEG_S", help="SMC100 move (and homing) speed, deg/s")
+    p.add_argument("--stage-accel", type=float, metavar="DEG_S2", help="SMC100 acceleration, deg/s²")
     p.add_argument("--truth-log", metavar="PATH", help="write the truth as JSON lines (docs/simulator.md)")
     p.add_argument("--truth-rate", type=float, metavar="HZ", help="truth samples per device second (50)")
     p.add_argument("--config", metavar="FILE.toml", help="the other settings (keys as SimConfig)")
@@ -128,13 +180,18 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
     for flag, key in (("heading", "heading_deg"), ("pitch", "pitch_deg"), ("roll", "roll_deg"),
                       ("latitude", "latitude_deg"), ("grade", "grade"), ("seed", "seed"),
                       ("time_scale", "time_scale"), ("scenario", "scenario"), ("imu_rate", "imu_rate_hz"),
-                      ("truth_log", "truth_log"), ("truth_rate", "truth_rate_hz"),
+                      ("truth_log", "truth_log"), ("truth_rate", "truth_rate_hz"), ("imu_axes", "imu_axes"),
+                      ("stage_speed", "stage_speed_dps"), ("stage_accel", "stage_accel_dps2"),
                       ("accel_rate", "accel_rate_hz"), ("accel_mapping", "accel_mapping")):
         value = getattr(args, flag)
         if value is not None:
             data[key] = value
     if args.sway is not None:
         data["sway"] = parse_sway(args.sway)
+    if args.link_hold is not None:
+        data.update(parse_link_hold(args.link_hold))
+    if args.link_latency is not None:
+        data.update(parse_link_latency(args.link_latency))
     if args.lever_arm is not None:
         key = "gnss_lever_arm_m" if data.get("scenario", "bench") == "vehicle" else "imu_lever_arm_m"
         data[key] = parse_lever_arm(args.lever_arm)

@@ -22,6 +22,9 @@ from typing import Any
 from firmware_sim.faults import FaultError, Faults, parse_faults
 
 IMU_VARIANTS = ("gyro-1axis", "gyro-3axis", "gyro-accel")
+IMU_AXES_ALIASES = {"gyro-1axis": "y", "gyro-3axis": "xyz", "gyro-accel": "xyz+acc"}
+"""The old `imu_variant` names, still accepted for `imu_axes` (and as the `imu_variant` key)."""
+IMU_AXES_HELP = "gyro axis letters then optional +acc, e.g. xyz+acc (default), xyz, y, xy, xy+acc"
 IMU_RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
 CAN_INTERFACES = ("slcan", "virtual", "socketcan")
 GRADES = ("nav", "kvh1760", "tactical-mems", "consumer")
@@ -64,7 +67,10 @@ class SimConfig:
     seed: int = 0
     time_scale: float = 1.0
     # IMU (KVH format A)
-    imu_variant: str = "gyro-accel"
+    imu_axes: str = "xyz+acc"
+    """The KVH unit's axes: gyro letters, then +acc if it has accelerometers (IMU_AXES_HELP)."""
+    imu_variant: str | None = None
+    """Old name of imu_axes (gyro-1axis | gyro-3axis | gyro-accel); folded into imu_axes by check."""
     imu_rate_hz: int | None = None
     """None: 1000 Hz (bench, ship) or 250 Hz (vehicle)."""
     imu_rot_format: str = "DELTA"
@@ -72,6 +78,19 @@ class SimConfig:
     imu_temperature_c: float = 25.0
     imu_lever_arm_m: tuple[float, float, float] | None = None
     """IMU position in b from the centre of rotation; None: (1, 2, 1.5) m for the ship, else 0."""
+    # the USB-serial links of the IMU and GNSS ptys (firmware_sim/link.py)
+    imu_link_latency_ms: float = 0.0
+    """Each IMU message leaves the pty this long (device ms) after it was produced."""
+    imu_link_jitter_ms: float = 0.0
+    """± uniform jitter on that latency (device ms, <= the latency; order is kept)."""
+    gnss_link_latency_ms: float = 0.0
+    gnss_link_jitter_ms: float = 0.0
+    link_hold_period_s: float | None = None
+    """Every this many device seconds the IMU and GNSS links hold their bytes back; None: never."""
+    link_hold_ms: float = 0.0
+    """How long each hold lasts, in HOST WALL-CLOCK ms; then the held bytes leave in one burst."""
+    link_hold_jitter_s: float = 0.0
+    """± uniform jitter on each hold period (device s, seeded)."""
     # turntable (SMC100)
     stage_address: int = 1
     stage_power_on_deg: float | None = None
@@ -183,8 +202,7 @@ def check(cfg: SimConfig) -> None:
         raise ConfigError(f"pitch_deg = {cfg.pitch_deg}: give a pitch in (-90, 90) degrees")
     if cfg.time_scale <= 0.0:
         raise ConfigError(f"time_scale = {cfg.time_scale}: give a factor > 0 (1 = real time)")
-    if cfg.imu_variant not in IMU_VARIANTS:
-        raise ConfigError(f"imu_variant = {cfg.imu_variant!r}: use one of {', '.join(IMU_VARIANTS)}")
+    check_imu_axes(cfg)
     if cfg.imu_rate_hz not in IMU_RATES_HZ:
         raise ConfigError(f"imu_rate_hz = {cfg.imu_rate_hz}: use one of {IMU_RATES_HZ}")
     cfg.imu_rot_format = cfg.imu_rot_format.upper()
@@ -214,11 +232,61 @@ def check(cfg: SimConfig) -> None:
         raise ConfigError(f"truth_rate_hz = {cfg.truth_rate_hz}: give a rate > 0 samples per device second")
     if cfg.truth_log is not None and not cfg.truth_log.strip():
         raise ConfigError("truth_log = '': give the path of a file to write, or leave it out")
+    check_links(cfg)
     for name in ("stage_speed_dps", "stage_accel_dps2", "stage_home_speed_dps", "stage_ringing_hz",
                  "encoder_step_deg"):
         value = getattr(cfg, name)
         if value is not None and value <= 0.0:
             raise ConfigError(f"{name} = {value}: give a value > 0 (or leave it out for the default)")
+
+
+def parse_imu_axes(spec: str) -> tuple[str, bool]:
+    """`"xy+acc"` → ("xy", True); an old variant name maps through IMU_AXES_ALIASES.
+
+    Gyro letters are any of x, y, z, each at most once (returned in x, y, z order)."""
+    text = IMU_AXES_ALIASES.get(str(spec).strip().lower(), str(spec).strip().lower())
+    gyro, sep, acc = text.partition("+")
+    letters = "".join(a for a in "xyz" if a in gyro)
+    if (not gyro or len(letters) != len(gyro) or (sep and acc != "acc")):
+        raise ConfigError(f"imu_axes = {spec!r}: give {IMU_AXES_HELP}")
+    return letters, bool(sep)
+
+
+def check_imu_axes(cfg: SimConfig) -> None:
+    """Normalize imu_axes; fold the old imu_variant key into it (a clash is an error)."""
+    if not isinstance(cfg.imu_axes, str):
+        raise ConfigError(f"imu_axes = {cfg.imu_axes!r}: give {IMU_AXES_HELP}")
+    gyro, acc = parse_imu_axes(cfg.imu_axes)
+    axes = gyro + ("+acc" if acc else "")
+    if cfg.imu_variant is not None:
+        if cfg.imu_variant not in IMU_VARIANTS:
+            raise ConfigError(f"imu_variant = {cfg.imu_variant!r}: use one of {', '.join(IMU_VARIANTS)} "
+                              f"(or imu_axes: {IMU_AXES_HELP})")
+        old = IMU_AXES_ALIASES[cfg.imu_variant]
+        if axes not in ("xyz+acc", old):
+            raise ConfigError(f"imu_variant = {cfg.imu_variant!r} and imu_axes = {cfg.imu_axes!r} disagree; "
+                              "give only imu_axes")
+        axes, cfg.imu_variant = old, None
+    cfg.imu_axes = axes
+
+
+def check_links(cfg: SimConfig) -> None:
+    """Latency and jitter >= 0 with jitter <= latency; a hold needs a period > 0 and a length > 0."""
+    for dev in ("imu", "gnss"):
+        lat, jit = getattr(cfg, f"{dev}_link_latency_ms"), getattr(cfg, f"{dev}_link_jitter_ms")
+        if lat < 0.0 or jit < 0.0 or jit > lat:
+            raise ConfigError(f"{dev}_link_latency_ms = {lat}, {dev}_link_jitter_ms = {jit}: give a latency "
+                              ">= 0 and a jitter between 0 and the latency (device ms)")
+    if cfg.link_hold_period_s is None:
+        if cfg.link_hold_ms:
+            raise ConfigError(f"link_hold_ms = {cfg.link_hold_ms} needs link_hold_period_s (device s)")
+        return
+    if not cfg.link_hold_period_s > 0.0 or not cfg.link_hold_ms > 0.0:
+        raise ConfigError(f"link_hold_period_s = {cfg.link_hold_period_s}, link_hold_ms = "
+                          f"{cfg.link_hold_ms}: give a period > 0 device s and a hold > 0 wall ms")
+    if not 0.0 <= cfg.link_hold_jitter_s < cfg.link_hold_period_s:
+        raise ConfigError(f"link_hold_jitter_s = {cfg.link_hold_jitter_s}: give 0 <= jitter < "
+                          f"link_hold_period_s ({cfg.link_hold_period_s})")
 
 
 def check_sway(spec: Mapping[str, Any]) -> None:

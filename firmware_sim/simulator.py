@@ -47,8 +47,9 @@ TRUTH_BATCH_WALL_S = 0.1
 # independent random streams, one per purpose, from the one seed (SeedSequence.spawn order);
 # new purposes go at the end so that the existing streams, and so the bench's bytes, never change
 (_STREAM_GYRO, _STREAM_IMU_ACCEL, _STREAM_CAN_ACCEL, _STREAM_IMU_FAULTS, _STREAM_CAN_FAULTS,
- _STREAM_GNSS, _STREAM_GNSS_FAULTS, _STREAM_SWAY_PHASES) = range(8)
-N_STREAMS = 8
+ _STREAM_GNSS, _STREAM_GNSS_FAULTS, _STREAM_SWAY_PHASES, _STREAM_IMU_INVALID, _STREAM_IMU_LINK,
+ _STREAM_GNSS_LINK) = range(11)
+N_STREAMS = 11
 
 
 def build_world(cfg: SimConfig, phase_seed: Any = None) -> Any:
@@ -253,7 +254,7 @@ class TruthLog(Device):
             "type": "header", "format": self.FORMAT, "version": self.VERSION, "scenario": cfg.scenario,
             "seed": cfg.seed, "config": asdict(cfg), "endpoints": endpoints, "truth_rate_hz": self.rate_hz,
             "fields": self.fields(),
-            "imu": {"rate_hz": self.sim.imu.rate_hz, "variant": self.sim.imu.variant,
+            "imu": {"rate_hz": self.sim.imu.rate_hz, "axes": self.sim.imu.axes,
                     "lever_arm_b_m": np.asarray(self.sim.imu.lever_arm_b_m).tolist(),
                     "sample_k": "k = 1, 2, ... since power-on; sequence (k - 1) mod 128; "
                                 "device time of its interval's end t = k / rate_hz until an imu_grid event"},
@@ -379,7 +380,8 @@ class Simulator:
         if cfg.truth_log:  # first, so that a bad path is refused before any port opens
             self.truth = TruthLog(cfg.truth_log, self, batch_device_s=TRUTH_BATCH_WALL_S * cfg.time_scale)
         if cfg.scenario == "bench":
-            self.turntable = Smc100(self.world, address=cfg.stage_address, stall_move=cfg.faults.stage_stall)
+            self.turntable = Smc100(self.world, address=cfg.stage_address, stall_move=cfg.faults.stage_stall,
+                                    on_event=self.truth.event if self.truth is not None else None)
             self.devices.append(self.turntable)
 
         def make_imu_models(rate_hz: float) -> tuple[Any, Any]:
@@ -390,13 +392,15 @@ class Simulator:
             return gyro, accel
 
         self.imu = KvhImu(
-            self.world, rate_hz=cfg.imu_rate_hz, variant=cfg.imu_variant, rot_format=cfg.imu_rot_format,
+            self.world, rate_hz=cfg.imu_rate_hz, axes=cfg.imu_axes, rot_format=cfg.imu_rot_format,
             rot_units=cfg.imu_rot_units, lever_arm_b_m=cfg.imu_lever_arm_m,
             temperature_c=cfg.imu_temperature_c, make_models=make_imu_models, faults=cfg.faults,
             fault_seed=streams[_STREAM_IMU_FAULTS],
-            backlog_bytes=max(64 * 1024, int(36 * 1000 * cfg.time_scale * CLIENT_STALL_WALL_S)),
+            backlog_bytes=max(64 * 1024, int(36 * 1000 * cfg.time_scale
+                                             * (CLIENT_STALL_WALL_S + cfg.link_hold_ms / 1e3))),
             connect_grace_s=CONNECT_GRACE_WALL_S * cfg.time_scale,
             on_event=self.truth.event if self.truth is not None else None,
+            link=self._link("imu", streams[_STREAM_IMU_LINK]), invalid_seed=streams[_STREAM_IMU_INVALID],
         )
         self.devices.append(self.imu)
         if cfg.scenario == "bench" and cfg.accel_enabled:
@@ -408,11 +412,26 @@ class Simulator:
                 self.world, rate_hz=cfg.gnss_rate_hz, lever_arm_b_m=cfg.gnss_lever_arm_m,
                 rng=np.random.default_rng(streams[_STREAM_GNSS]), faults=cfg.faults,
                 fault_seed=streams[_STREAM_GNSS_FAULTS], longitude_deg=cfg.longitude_deg,
-                start_utc=gnss_start(cfg),
+                start_utc=gnss_start(cfg), link=self._link("gnss", streams[_STREAM_GNSS_LINK]),
             )
             self.devices.append(self.gnss)
         if self.truth is not None:
             self.devices.append(self.truth)  # last: it logs what the devices did in the same tick
+
+    def _link(self, device: str, stream: np.random.SeedSequence) -> Any:
+        """The USB-serial link of the imu or gnss pty (latency, hold), or None when both are off
+        (the bytes then go straight to the pty, as before)."""
+        from firmware_sim.link import LinkShaper, LinkSpec
+
+        cfg = self.config
+        spec = LinkSpec(latency_s=getattr(cfg, f"{device}_link_latency_ms") / 1e3,
+                        jitter_s=getattr(cfg, f"{device}_link_jitter_ms") / 1e3,
+                        hold_period_s=cfg.link_hold_period_s, hold_wall_s=cfg.link_hold_ms / 1e3,
+                        hold_jitter_s=cfg.link_hold_jitter_s)
+        if not spec.active:
+            return None
+        return LinkShaper(spec, np.random.default_rng(stream), name=device,
+                          on_event=self.truth.event if self.truth is not None else None)
 
     def _build_can(self, streams: list[np.random.SeedSequence]) -> None:
         import can

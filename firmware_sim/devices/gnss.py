@@ -152,7 +152,8 @@ class GnssReceiver(Device):
                  sigma_vel_m_s: float = 0.05, rng: Any = None, start_utc: dt.datetime = DEFAULT_START_UTC,
                  faults: Any = None, fault_seed: Any = 0, site: Any = None,
                  longitude_deg: float = DEFAULT_LONGITUDE_DEG, num_sv: int = 12, hdop: float = 0.8,
-                 geoid_sep_m: float = 0.0, talker: str = "GN", port: PtyPort | None = None) -> None:
+                 geoid_sep_m: float = 0.0, talker: str = "GN", port: PtyPort | None = None,
+                 link: Any = None) -> None:
         if int(rate_hz) != rate_hz or int(rate_hz) not in RATES_HZ:
             raise ValueError(f"GNSS rate {rate_hz} Hz not allowed; use one of {RATES_HZ}")
         sigmas = (("sigma_h_m", sigma_h_m), ("sigma_v_m", sigma_v_m), ("sigma_vel_m_s", sigma_vel_m_s))
@@ -192,6 +193,8 @@ class GnssReceiver(Device):
         self.nofix = _window(_fault(faults, "gnss-nofix"))
 
         self.port = port if port is not None else PtyPort("gnss")
+        self.link = link
+        """A firmware_sim.link.LinkShaper between the receiver and its pty, or None."""
         self.next_epoch = 0
         self.epochs_sent = 0
         self.sentences_corrupted = 0
@@ -210,13 +213,19 @@ class GnssReceiver(Device):
     def advance(self, t_device_s: float) -> None:
         """Send every epoch k with k / rate ≤ t (never beyond it)."""
         last = math.floor(t_device_s * self.rate_hz + 1e-9)
-        if last < self.next_epoch:
-            return
-        k = np.arange(self.next_epoch, last + 1)
-        self.next_epoch = last + 1
-        data = self.epoch_bytes(k)
-        self.epochs_sent += len(k)
-        self.port.write(data)
+        if last >= self.next_epoch:
+            k = np.arange(self.next_epoch, last + 1)
+            self.next_epoch = last + 1
+            self.epochs_sent += len(k)
+            if self.link is None:
+                self.port.write(self.epoch_bytes(k))
+            else:  # epoch by epoch, each with its time (the same bytes: noise is drawn per epoch)
+                for ki in k.tolist():
+                    self.link.send(self.epoch_bytes([ki]), float(self.epoch_time_s(ki)))
+        if self.link is not None:
+            if not self.port.connected:
+                self.link.discard()
+            self.link.pump(t_device_s, self.port)
 
     # -- truth and sentences ------------------------------------------------------------------
     def epoch_time_s(self, k) -> np.ndarray:

@@ -44,13 +44,20 @@ INVALID_AFTER_RATE_CHANGE = 2
 GYRO_VALID = (0x01, 0x02, 0x04)
 ACCEL_VALID = (0x10, 0x20, 0x40)
 
-VARIANTS = {
-    # name: (status valid bits, has accelerometer)
-    "gyro-1axis": (0x02, False),
-    "gyro-3axis": (0x07, False),
-    "gyro-accel": (0x77, True),
-}
-DEFAULT_VARIANT = "gyro-accel"
+DEFAULT_AXES = "xyz+acc"
+GARBAGE_LOG10_RANGE = (2.0, 4.0)
+"""A flagged (imu-invalid-rate) message carries |value| log-uniform in 1e2..1e4 in its cleared fields,
+with a random sign: what a unit sends during built-in test, finite and far from any real reading."""
+
+
+def axes_status(axes: str) -> tuple[int, np.ndarray, bool]:
+    """`"xy+acc"` → (status valid bits 0x33, gyro axis mask [1, 1, 0], has accelerometer)."""
+    from firmware_sim.config import parse_imu_axes
+
+    gyro, has_accel = parse_imu_axes(axes)
+    mask = np.array([a in gyro for a in "xyz"], dtype=float)
+    bits = sum(b for b, a in zip(GYRO_VALID, "xyz", strict=True) if a in gyro)
+    return bits | (sum(ACCEL_VALID) if has_accel else 0), mask, has_accel
 
 MESSAGE_DTYPE = np.dtype([
     ("header", ">u4"),
@@ -149,18 +156,17 @@ class KvhImu(Device):
     name = "imu"
 
     def __init__(self, world: Any, gyro_model: Any = None, accel_model: Any = None, *,
-                 rate_hz: int = 1000, variant: str = DEFAULT_VARIANT, rot_format: str = "DELTA",
+                 rate_hz: int = 1000, axes: str = DEFAULT_AXES, rot_format: str = "DELTA",
                  rot_units: str = "RAD", lever_arm_b_m: Any = (0.0, 0.0, 0.0), temperature_c: float = 25.0,
                  make_models: Any = None, faults: Any = None, fault_seed: Any = 0,
                  backlog_bytes: int | None = None, connect_grace_s: float = 0.0,
-                 on_event: Callable[[str, float, dict[str, Any]], None] | None = None) -> None:
-        if variant not in VARIANTS:
-            raise ValueError(f"IMU variant {variant!r} unknown; use one of {', '.join(VARIANTS)}")
+                 on_event: Callable[[str, float, dict[str, Any]], None] | None = None,
+                 link: Any = None, invalid_seed: Any = None) -> None:
         if int(rate_hz) not in RATES_HZ:
             raise ValueError(f"IMU rate {rate_hz} Hz not allowed; use one of {RATES_HZ}")
         self.world = world
-        self.variant = variant
-        self.valid_bits, self.has_accel = VARIANTS[variant]
+        self.valid_bits, self.gyro_mask, self.has_accel = axes_status(axes)
+        self.axes = axes
         self.rate_hz = int(rate_hz)
         self.rot_format = rot_format.upper()
         self.rot_units = rot_units.upper()
@@ -175,6 +181,13 @@ class KvhImu(Device):
         self.crc_rate = float(getattr(faults, "imu_crc_rate", 0.0) or 0.0)
         self.drop_rate = float(getattr(faults, "imu_drop_byte_rate", 0.0) or 0.0)
         self.silence = getattr(faults, "imu_silence", None)
+        self.invalid_rate = float(getattr(faults, "imu_invalid_rate", 0.0) or 0.0)
+        self.invalid_rng = np.random.default_rng(invalid_seed) if self.invalid_rate else None
+        self.invalid_count = 0
+        """Messages produced with their valid bits cleared (fault or rate change); the truth log
+        lists each one's k in `imu_invalid` events."""
+        self.link = link
+        """A firmware_sim.link.LinkShaper between this IMU and its pty, or None (bytes go straight)."""
         self.disconnect = getattr(faults, "imu_disconnect", None)
 
         self._backlog_bytes = backlog_bytes
@@ -254,12 +267,13 @@ class KvhImu(Device):
             self._link = "arming" if self.port.connected else "down"
         self._disconnect_events(t_device_s)
         n_due = int(math.floor((t_device_s - self.epoch_s) * self.rate_hz + 1e-9)) - self.emitted
-        if n_due <= 0:
-            return
-        if self.config_mode:  # no data in configuration mode; the grid moves on
-            self.emitted += n_due
-            return
-        self._emit(n_due)
+        if n_due > 0:
+            if self.config_mode:  # no data in configuration mode; the grid moves on
+                self.emitted += n_due
+            else:
+                self._emit(n_due)
+        if self.link is not None:
+            self.link.pump(t_device_s, self.port)
 
     # -- configuration ------------------------------------------------------------------------
     def handle_line(self, line: str, t: float) -> None:
@@ -273,7 +287,7 @@ class KvhImu(Device):
             if answer is None:
                 log.info("imu: unknown query %r ignored", line)
                 return
-            self.port.write(f"{key},{answer}\n".encode("ascii"))
+            self._write(f"{key},{answer}\n".encode("ascii"))
         elif line.startswith("="):
             if key == "CONFIG" and value in ("0", "1"):
                 leaving = self.config_mode and value == "0"
@@ -322,15 +336,18 @@ class KvhImu(Device):
             accel_g = np.asarray(dv, dtype=np.float64) / (dt * STANDARD_GRAVITY_M_S2)
         else:
             accel_g = np.zeros((n, 3))
-        if self.valid_bits == 0x02:
-            gyro = gyro * np.array([0.0, 1.0, 0.0])
+        if not self.gyro_mask.all():  # axes the unit does not have send 0.0
+            gyro = gyro * self.gyro_mask
+        k_abs = self.produced + 1 + np.arange(n)
         if self.invalid_left:
             k = min(self.invalid_left, n)
             status[:k] = 0
             self.invalid_left -= k
+            self._count_invalid(k_abs[:k], "rate_change")
+        if self.invalid_rng is not None:
+            self._flag_invalid(gyro, accel_g, status, k_abs)
         seq = (self.sequence + np.arange(n)) & 0x7F
         self.sequence = (self.sequence + n) & 0x7F
-        k_abs = self.produced + 1 + np.arange(n)
         self.produced += n
         t_end = t0 + dt * np.arange(1, n + 1)
         keep = np.ones(n, dtype=bool)
@@ -346,6 +363,30 @@ class KvhImu(Device):
         self.messages_sent += int(keep.sum())
         self._deliver(data, sizes, k_abs[keep], seq[keep], t_end[keep])
 
+    def _count_invalid(self, k: np.ndarray, reason: str) -> None:
+        if len(k):
+            self.invalid_count += len(k)
+            self._event("imu_invalid", reason=reason, k=[int(v) for v in k], count=self.invalid_count)
+
+    def _flag_invalid(self, gyro: np.ndarray, accel_g: np.ndarray, status: np.ndarray,
+                      k_abs: np.ndarray) -> None:
+        """imu-invalid-rate: flagged messages get their axes' valid bits cleared and garbage in
+        those fields (in place). 13 draws per message whatever happens, so the bytes for a seed do
+        not depend on how the loop batches the samples."""
+        u = self.invalid_rng.random((len(k_abs), 13))  # type: ignore[union-attr]
+        flagged = (u[:, 0] < self.invalid_rate) & (status != 0)  # a rate-change message stays as it is
+        if not flagged.any():
+            return
+        lo, hi = GARBAGE_LOG10_RANGE
+        garbage = np.where(u[:, 7:] < 0.5, -1.0, 1.0) * 10.0 ** (lo + (hi - lo) * u[:, 1:7])
+        fields = np.concatenate([gyro, accel_g], axis=1)
+        present = np.concatenate([self.gyro_mask, np.full(3, 1.0 if self.has_accel else 0.0)]) > 0
+        rows = np.flatnonzero(flagged)
+        fields[np.ix_(rows, np.flatnonzero(present))] = garbage[np.ix_(rows, np.flatnonzero(present))]
+        gyro[rows], accel_g[rows] = fields[rows, :3], fields[rows, 3:]
+        status[rows] = 0
+        self._count_invalid(k_abs[rows], "fault")
+
     def _deliver(self, data: bytes, sizes: np.ndarray, k_abs: np.ndarray, seq: np.ndarray,
                  t_end: np.ndarray) -> None:
         """Hand the frames to a connected client, starting a new client on a frame boundary."""
@@ -354,18 +395,21 @@ class KvhImu(Device):
                 self._event("imu_disconnect", k_last=self.k_last_delivered, port=self.port.path)
             if self._link != "down":
                 self.port.discard()
+                if self.link is not None:
+                    self.link.discard()
             self._link = "down"
             self.port.bytes_unheard += len(data)
             return
         if self._link == "down":  # a new client: let it finish opening (pyserial flushes its input)
             self._link = "arming"
             self._deliver_from_s = self._t_now + self.connect_grace_s
+        first = 0  # the first frame this call hands on
         if self._link == "arming":
             late = np.flatnonzero(t_end >= self._deliver_from_s - 1e-9)
             if not len(late):
                 self.port.bytes_unheard += len(data)
                 return
-            i0 = int(late[0])
+            i0 = first = int(late[0])
             skip = int(sizes[:i0].sum())
             self.port.bytes_unheard += skip
             data = data[skip:]  # (nothing stale is queued: the last disconnect discarded it)
@@ -373,7 +417,18 @@ class KvhImu(Device):
             self._event("imu_connect", k0=int(k_abs[i0]), sequence0=int(seq[i0]),
                         t0_device_s=float(t_end[i0]), rate_hz=self.rate_hz, port=self.port.path)
         self.k_last_delivered = int(k_abs[-1])
-        self.port.write(data)
+        if self.link is not None:
+            self.link.send_many(data, sizes[first:], t_end[first:])
+        else:
+            self.port.write(data)
+
+    def _write(self, data: bytes) -> None:
+        """A reply line: through the link when there is one (it keeps the byte order)."""
+        if self.link is not None:
+            self.link.send(data, self._t_now)
+            self.link.pump(self._t_now, self.port)
+        else:
+            self.port.write(data)
 
     def _corrupt(self, data: bytes) -> tuple[bytes, np.ndarray]:
         """Apply imu-crc-rate / imu-drop-byte-rate, drawing only from the fault stream; returns the
@@ -405,6 +460,8 @@ class KvhImu(Device):
                 self._event("imu_disconnect", k_last=self.k_last_delivered, port=self.port.path)
             self._link = "down"
             self.port.close()
+            if self.link is not None:
+                self.link.discard()
             self._down_until_s = at_s + down_s
         elif self._down_until_s is not None and t >= self._down_until_s:
             self._down_until_s = None

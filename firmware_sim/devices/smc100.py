@@ -41,6 +41,8 @@ DISABLE_FROM_MOVING = 0x3D
 ERR_FOLLOWING = 1 << 5
 
 SOFT_LIMITS_DEG = (-360.0, 360.0)
+REST_THRESHOLD_DEG = 1e-6
+"""A `move` event's t_rest_s: the table top is within this of its final angle from then on."""
 STALL_FRACTION = 0.5
 """Fault stage-stall: the stage jams after this fraction of the move's distance."""
 
@@ -145,13 +147,16 @@ class Smc100(Device):
     name = "turntable"
 
     def __init__(self, world: Any, *, address: int = 1, stall_move: int | None = None,
-                 soft_limits_deg: tuple[float, float] = SOFT_LIMITS_DEG, port: PtyPort | None = None) -> None:
+                 soft_limits_deg: tuple[float, float] = SOFT_LIMITS_DEG, port: PtyPort | None = None,
+                 on_event: Any = None) -> None:
         self.world = world
         self.table = world.table
         self.address = int(address)
         self.stall_move = stall_move
         self.default_limits_deg = (float(soft_limits_deg[0]), float(soft_limits_deg[1]))
         self.port = port if port is not None else PtyPort("turntable")
+        self.on_event = on_event
+        """Called as on_event("move", t, fields) for every planned motion (truth log)."""
         self._rx = bytearray()
         self.moves = 0
         self._reset_state()
@@ -272,7 +277,9 @@ class Smc100(Device):
         else:
             self.state = HOMING
             self.errors = 0
+            start_deg = self._motor_deg(t)
             self._end_s = float(self.table.home(t))
+            self._move_event("home", t, start_deg)
 
     def _cmd_pa(self, cmd: SmcCommand, t: float) -> None:
         self._move(cmd, t, relative=False)
@@ -306,16 +313,22 @@ class Smc100(Device):
         self.target_deg = target
         self._stalling = self.stall_move is not None and self.moves == self.stall_move
         stall = STALL_FRACTION if self._stalling else None
+        start_deg = self._motor_deg(t)
         self._end_s = float(self.table.command_move(t, math.radians(target), stall_fraction=stall))
+        self._move_event("stall" if self._stalling else "move", t, start_deg)
 
     def _cmd_st(self, cmd: SmcCommand, t: float) -> None:
         if self.state == MOVING:
             self._stalling = False
+            start_deg = self._motor_deg(t)
             self._end_s = float(self.table.stop(t))
             self.target_deg = math.degrees(self.table.target_rad)
+            self._move_event("stop", t, start_deg)
         elif self.state == HOMING:
             self._end_s = None
+            start_deg = self._motor_deg(t)
             self.table.stop(t)
+            self._move_event("stop", t, start_deg)
             self.state = NOT_REFERENCED_FROM_HOMING
 
     def _limit(self, cmd: SmcCommand, t: float, index: int) -> None:
@@ -375,5 +388,21 @@ class Smc100(Device):
             self._error("C")
 
     # -- physics ---------------------------------------------------------------------------
+    def _motor_deg(self, t: float) -> float:
+        return math.degrees(float(self.table.motor_kinematics(t)[0]))
+
+    def _move_event(self, kind: str, t: float, from_deg: float) -> None:
+        """The plan just made, for the truth log: when the motion starts and ends (the state goes
+        READY then), when the top is at rest (ringing under REST_THRESHOLD_DEG), from and to where.
+        A later move or stop replaces the plan from its own t_start_s on."""
+        if self.on_event is None:
+            return
+        self.on_event("move", t, {
+            "kind": kind, "t_start_s": float(t), "t_end_s": float(self.table.move_end_s),
+            "t_rest_s": float(self.table.rest_s(math.radians(REST_THRESHOLD_DEG))),
+            "from_deg": from_deg, "to_deg": self._motor_deg(float(self.table.move_end_s)),
+            "rest_threshold_deg": REST_THRESHOLD_DEG,
+        })
+
     def _encoder_deg(self, t: float) -> float:
         return math.degrees(float(self.table.encoder_rad(t)))

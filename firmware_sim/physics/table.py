@@ -283,6 +283,25 @@ class TableMotion:
         extra = self.decay_s * math.log(max(amp, _SETTLED_RAD) / _SETTLED_RAD) if amp > 0 else 0.0
         return float(tk[-1]) + extra
 
+    def rest_s(self, threshold_rad: float) -> float:
+        """Device time from which the top's angle stays within `threshold_rad` of where it comes to
+        rest: the planned motion's end plus the time the ringing envelope needs to fall below it.
+
+        Bound: each forcing step Δu_j leaves |x − x_final| ≤ |Δu_j|·√(1 + (ζω₀/ω_d)²)/ω₀²·e^{−τ/decay};
+        the bound sums them at the last knot and lets the sum decay from there.
+        """
+        tk, du, _ = self._ring_steps()
+        if tk.size == 0 or not np.isfinite(tk[-1]):
+            return -np.inf
+        t_last = float(tk[-1])
+        recent = tk >= t_last - 40.0 * self.decay_s
+        r = self.zeta * self.omega0 / self.omega_d
+        amp = float(np.sum(np.abs(du[recent]) * np.exp(-(t_last - tk[recent]) / self.decay_s)))
+        amp *= math.sqrt(1.0 + r * r) / self.omega0**2
+        if amp <= threshold_rad:
+            return t_last
+        return t_last + self.decay_s * math.log(amp / threshold_rad)
+
     def still_between(self, t_a_s: float, t_b_s: float) -> bool:
         """True if the top does not move at all (to 1e-15 rad) over [t_a, t_b]."""
         if t_a_s >= self.settled_s():
