@@ -217,6 +217,7 @@ class Sequencer:
         stage_speed_deg_s: float = 0.0,
         stage_settle_s: float = 5.0,
         dwell_grid_s: float = 1.0,
+        settle_margin_s: float = 1.0,
     ):
         """`read_timeout_s`: host seconds a read may wait beyond the samples' own duration;
         `max_attempts`: measurements of one position before the run stops; a dwell is measured
@@ -226,7 +227,10 @@ class Sequencer:
         already measured (--resume); `stage_speed_deg_s` ([turntable] speed_deg_s, 0 unknown) bounds
         each move (host timeout) and its settle (device time); `stage_settle_s` ([turntable] settle_s)
         is the rest after READY of a unit without a gyro z; `dwell_grid_s`: a dwell starts on a
-        multiple of this many device seconds of IMU samples (so it does not depend on host timing)."""
+        multiple of this many device seconds of IMU samples (so it does not depend on host timing);
+        `settle_margin_s`: device time dropped after the gyro-z settle criterion is met — it fires once
+        the ringing is below one window's noise; the margin lets it decay e^(margin/τ) further (28×
+        for the 0.3 s decay of the bench), so the dwell starts with the table at rest."""
         self.turntable = turntable
         self.imu = imu
         self.accel = accelerometer
@@ -250,6 +254,7 @@ class Sequencer:
         self.stage_speed_deg_s = float(stage_speed_deg_s)
         self.stage_settle_s = float(stage_settle_s)
         self.dwell_grid_s = float(dwell_grid_s)
+        self.settle_margin_s = float(settle_margin_s)
         self._move_deg = 0.0
         self.positions: list[PositionMeans] = []
         self._plan: list[float] = []
@@ -444,8 +449,15 @@ class Sequencer:
             z = np.asarray(self._read_imu(n_win).gyro_rad_s)[:, 2] / DPH
             windows.append(z[np.isfinite(z)])
             if k >= min_windows and settle_reached(windows[-2:], cfg.settle_ratio, cfg.settle_rest_dph):
-                return SettleResult(k * n_win / rate, True, k)
+                return SettleResult(k * n_win / rate + self._settle_margin(rate), True, k)
         return SettleResult(max_windows * n_win / rate, False, max_windows)
+
+    def _settle_margin(self, rate: float) -> float:
+        """Drop settle_margin_s of samples after the settle criterion; returns that time [s]."""
+        n = int(round(self.settle_margin_s * rate))
+        if n:
+            self._read_imu(n)
+        return n / rate
 
     def _start_accelerometer(self, quiet_s: float = 0.1, timeout_s: float = 10.0) -> None:
         """NMT start, once the CAN link has delivered everything sent before the last NMT stop.
