@@ -141,9 +141,11 @@ def test_frames_flagged_not_valid_are_excluded_counted_and_cost_no_remeasure(tmp
                                    faults=("imu-invalid-rate=0.001",))
     assert "gyro x y z, accel x y z" in probe
     _check(run_dir, result, gyro_axes=2)
-    # the driver's count is the simulator's: every flagged frame from the first one it received
+    # the driver's count is the simulator's: every flagged frame the run's client received (from
+    # its first frame to its last; check's probe is a second client afterwards)
     k0 = _truth_events(truth_log, "imu_connect")[0]["k0"]
-    flagged = [k for e in _truth_events(truth_log, "imu_invalid") for k in e["k"] if k >= k0]
+    k_last = _truth_events(truth_log, "imu_disconnect")[0]["k_last"]
+    flagged = [k for e in _truth_events(truth_log, "imu_invalid") for k in e["k"] if k0 <= k <= k_last]
     imu = result["faults"]["imu"]
     assert imu["lost_samples"] == 0  # else a lost frame could hide a flagged one
     assert imu["invalid_samples"] == dict.fromkeys(("gx", "gy", "gz", "ax", "ay", "az"), len(flagged))
