@@ -354,3 +354,68 @@ def test_one_degree_per_second_homing_and_move(tmp_path):
         # plan's end, ready at or after it
         assert seen[-2][0] < plan["t_end_s"] <= seen[-1][2]
         assert len(seen) >= 10  # polled all along the slow motion
+
+
+def test_gnss_link_latency_and_hold_never_lose_or_reorder_epochs():
+    """--link-latency gnss=300:0 --link-hold 3,150 on the vehicle: every epoch arrives whole and in
+    order (GGA, RMC, VTG; UTC steps of 0.1 s, checksums good) and none before 300 ms of device time
+    after its own UTC (the epoch's device time is its UTC minus gnss_start_utc)."""
+    cfg = SimConfig(scenario="vehicle", seed=3, time_scale=2.0, gnss_link_latency_ms=300.0,
+                    link_hold_period_s=3.0, link_hold_ms=150.0)
+    sim = Simulator(cfg)
+    try:
+        ep = sim.start()
+        reader = _Reader(ep["gnss"], sim)
+        reader.start()
+        sim.run_for(8.0)
+        reader.finish()
+    finally:
+        sim.stop()
+    lines, t_arrival, buf = [], [], b""
+    for _, t_dev, chunk in reader.chunks:
+        buf += chunk
+        *done, buf = buf.split(b"\r\n")
+        lines += done
+        t_arrival += [t_dev] * len(done)
+    assert len(lines) >= 3 * 50
+    for line in lines:
+        body, star, checksum = line[1:].partition(b"*")
+        assert line[:1] == b"$" and star and int(checksum, 16) == _xor(body)
+    kinds = [line[3:6] for line in lines]
+    first = kinds.index(b"GGA")
+    whole = len(kinds[first:]) // 3 * 3
+    assert kinds[first:first + whole] == [b"GGA", b"RMC", b"VTG"] * (whole // 3)
+    gga = [(line, t) for line, t in zip(lines, t_arrival, strict=True) if line[3:6] == b"GGA"]
+    t_utc = np.array([_hhmmss_s(line.split(b",")[1]) - 12 * 3600.0 for line, _ in gga])  # start 12:00:00
+    assert np.allclose(np.diff(t_utc), 0.1, atol=1e-6)
+    assert (np.array([t for _, t in gga]) - t_utc >= 0.3).all()
+
+
+def _xor(body: bytes) -> int:
+    out = 0
+    for b in body:
+        out ^= b
+    return out
+
+
+def _hhmmss_s(field: bytes) -> float:
+    text = field.decode()
+    return int(text[:2]) * 3600.0 + int(text[2:4]) * 60.0 + float(text[4:])
+
+
+def test_new_flags_refuse_bad_values_in_one_line(capsys):
+    from firmware_sim.cli import main
+
+    for argv, names in ((["--imu-axes", "xw"], "imu_axes"), (["--link-hold", "5"], "--link-hold"),
+                        (["--link-latency", "10,20"], "--link-latency"),
+                        (["--link-latency", "imu=1:0,can=2"], "--link-latency"),
+                        (["--stage-speed", "0"], "stage_speed_dps"),
+                        (["--stage-accel", "-3"], "stage_accel_dps2"),
+                        (["--fault", "imu-invalid-rate=1.5"], "imu-invalid-rate")):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and names in err and "Traceback" not in err, err
+    with pytest.raises(ConfigError, match="link_hold_ms"):
+        SimConfig(link_hold_ms=100.0)
+    with pytest.raises(ConfigError, match="jitter"):
+        SimConfig(imu_link_latency_ms=5.0, imu_link_jitter_ms=6.0)
