@@ -321,7 +321,9 @@ def faults_summary(events: Sequence[dict[str, Any]]) -> dict[str, Any]:
     imu["invalid_samples"] = {  # per axis the unit has: frames flagged not valid in the stream
         k: int(sum(int(e.get("imu", {}).get(f"invalid_{k}", 0)) for e in stats)) for k in names
     }
-    imu["invalid_in_dwells"] = int(sum(sum(e["imu"].get("invalid", {}).values()) for e in kept))
+    imu["invalid_in_dwells"] = {  # per gyro axis: flagged samples left out of the kept dwells
+        k: int(sum(int(e["imu"].get("invalid", {}).get(k, 0)) for e in kept)) for k in names if k[0] == "g"
+    }
     accel: dict[str, Any] = {
         k: int(sum(int(e.get("accel", {}).get(k, 0)) for e in stats)) for k in _ACCEL_COUNTERS
     }

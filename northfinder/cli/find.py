@@ -357,8 +357,8 @@ def _invalid_lines(imu: dict[str, Any]) -> list[str]:
     if not any(counts.values()):
         return []
     each = ", ".join(f"{k} {v}" for k, v in counts.items())
-    return [f"IMU samples flagged not valid (left out): {each} in the stream "
-            f"({imu.get('invalid_in_dwells', 0)} inside kept dwells)"]
+    dwells = ", ".join(f"{k} {v}" for k, v in (imu.get("invalid_in_dwells") or {}).items())
+    return [f"IMU samples flagged not valid (left out): {each} in the stream ({dwells} inside kept dwells)"]
 
 
 def _print_faults(faults: dict[str, Any] | None, console: Any) -> None:
