@@ -151,6 +151,9 @@ class KvhImu(Device):
 
     `gyro_model` / `accel_model` are the physics' error models; `make_models(rate_hz)` may be
     given instead to rebuild them after `=DR` (the models are built for one sample rate).
+    `axes` ("xyz+acc", "xyz", "y", …): the unit's axes; missing ones send 0.0 with their valid bits
+    clear (PROTOCOLS.md §2). `link`: a firmware_sim.link.LinkShaper (latency, hold) or None.
+    `invalid_seed`: the stream of the imu-invalid-rate fault (docs/simulator.md).
     """
 
     name = "imu"
