@@ -47,6 +47,162 @@ def nmea(body: str) -> str:
     return f"${body}*{checksum:02X}\r\n"
 
 
+def _sdo(cmd: int, index: int, sub: int, data: bytes = b"") -> str:
+    """One SDO payload (PROTOCOLS.md §3.1): command, index LE, sub-index, 4 data bytes."""
+    return (struct.pack("<BHB", cmd, index, sub) + data.ljust(4, b"\0")).hex()
+
+
+def _abort(index: int, sub: int, code: int) -> str:
+    return _sdo(0x80, index, sub, struct.pack("<I", code))
+
+
+def _segment(cmd: int, data: bytes = b"") -> str:
+    return (bytes((cmd,)) + data.ljust(7, b"\0")).hex()
+
+
+def sdo_exchanges() -> list[dict]:
+    """SDO request/response pairs with the reference node (defaults of the §3.1 table), in
+    order; `state` is the node's NMT state, `setup` exchanges come first and succeed."""
+    name = b"NF-ACC3 accelerometer"  # 21 bytes: three 7-byte segments
+    up = 0x40
+    return [
+        {
+            "name": "upload 1018:1 vendor ID, expedited 4 bytes",
+            "index": 0x1018,
+            "sub": 1,
+            "value": "e2040000",
+            "steps": [
+                {"request": _sdo(up, 0x1018, 1), "response": _sdo(0x43, 0x1018, 1, struct.pack("<I", 0x4E2))}
+            ],
+        },
+        {
+            "name": "upload 2100:0 sample rate, expedited 2 bytes",
+            "index": 0x2100,
+            "sub": 0,
+            "value": "6400",
+            "steps": [
+                {"request": _sdo(up, 0x2100, 0), "response": _sdo(0x4B, 0x2100, 0, struct.pack("<H", 100))}
+            ],
+        },
+        {
+            "name": "upload 1a00:0 TPDO1 mapping count, expedited 1 byte",
+            "index": 0x1A00,
+            "sub": 0,
+            "value": "02",
+            "steps": [{"request": _sdo(up, 0x1A00, 0), "response": _sdo(0x4F, 0x1A00, 0, b"\x02")}],
+        },
+        {
+            "name": "upload 1008:0 device name, segmented",
+            "index": 0x1008,
+            "sub": 0,
+            "value": name.hex(),
+            "steps": [
+                {
+                    "request": _sdo(up, 0x1008, 0),
+                    "response": _sdo(0x41, 0x1008, 0, struct.pack("<I", len(name))),
+                },
+                {"request": _segment(0x60), "response": _segment(0x00, name[0:7])},
+                {"request": _segment(0x70), "response": _segment(0x10, name[7:14])},
+                {"request": _segment(0x60), "response": _segment(0x01, name[14:21])},
+            ],
+        },
+        {
+            "name": "download 2100:0 = 50 Hz, expedited 2 bytes",
+            "index": 0x2100,
+            "sub": 0,
+            "value": "3200",
+            "steps": [
+                {"request": _sdo(0x2B, 0x2100, 0, struct.pack("<H", 50)), "response": _sdo(0x60, 0x2100, 0)}
+            ],
+        },
+        {
+            "name": "download 1017:0 = 500 ms heartbeat",
+            "index": 0x1017,
+            "sub": 0,
+            "value": "f401",
+            "steps": [
+                {"request": _sdo(0x2B, 0x1017, 0, struct.pack("<H", 500)), "response": _sdo(0x60, 0x1017, 0)}
+            ],
+        },
+        {
+            "name": "abort: object does not exist",
+            "index": 0x2200,
+            "sub": 0,
+            "abort": 0x06020000,
+            "steps": [{"request": _sdo(up, 0x2200, 0), "response": _abort(0x2200, 0, 0x06020000)}],
+        },
+        {
+            "name": "abort: sub-index does not exist",
+            "index": 0x1018,
+            "sub": 9,
+            "abort": 0x06090011,
+            "steps": [{"request": _sdo(up, 0x1018, 9), "response": _abort(0x1018, 9, 0x06090011)}],
+        },
+        {
+            "name": "abort: write to a read-only object",
+            "index": 0x1018,
+            "sub": 1,
+            "value": "01000000",
+            "abort": 0x06010002,
+            "steps": [
+                {
+                    "request": _sdo(0x23, 0x1018, 1, struct.pack("<I", 1)),
+                    "response": _abort(0x1018, 1, 0x06010002),
+                }
+            ],
+        },
+        {
+            "name": "abort: length mismatch (u16 written with 4 bytes)",
+            "index": 0x2100,
+            "sub": 0,
+            "value": "32000000",
+            "abort": 0x06070010,
+            "steps": [
+                {
+                    "request": _sdo(0x23, 0x2100, 0, struct.pack("<I", 50)),
+                    "response": _abort(0x2100, 0, 0x06070010),
+                }
+            ],
+        },
+        {
+            "name": "abort: value range exceeded (rate 0 Hz)",
+            "index": 0x2100,
+            "sub": 0,
+            "value": "0000",
+            "abort": 0x06090030,
+            "steps": [{"request": _sdo(0x2B, 0x2100, 0, b"\0\0"), "response": _abort(0x2100, 0, 0x06090030)}],
+        },
+        {
+            "name": "abort: rate written while operational",
+            "state": "operational",
+            "index": 0x2100,
+            "sub": 0,
+            "value": "1900",
+            "abort": 0x08000022,
+            "steps": [
+                {
+                    "request": _sdo(0x2B, 0x2100, 0, struct.pack("<H", 25)),
+                    "response": _abort(0x2100, 0, 0x08000022),
+                }
+            ],
+        },
+        {
+            "name": "abort: mapping of 96 bits",
+            "index": 0x1A00,
+            "sub": 0,
+            "value": "03",
+            "abort": 0x06070010,
+            "setup": [
+                {
+                    "request": _sdo(0x23, 0x1A00, 3, struct.pack("<I", 0x20000320)),
+                    "response": _sdo(0x60, 0x1A00, 3),
+                }
+            ],
+            "steps": [{"request": _sdo(0x2F, 0x1A00, 0, b"\x03"), "response": _abort(0x1A00, 0, 0x06070010)}],
+        },
+    ]
+
+
 def build() -> dict:
     assert crc32_mpeg2_via_zlib(b"123456789") == 0x0376E6E7
     kvh = [
@@ -169,6 +325,8 @@ def build() -> dict:
         },
     ]
 
+    sdo = sdo_exchanges()
+
     def slcan_frame(can_id: int, data_hex: str) -> str:
         data = bytes.fromhex(data_hex)
         return f"t{can_id:03X}{len(data):d}{data.hex().upper()}\r"
@@ -202,12 +360,23 @@ def build() -> dict:
     rmc = "GNRMC,123519.00,A,4007.0380000,N,11631.0000000,E,10.500,84.40,221126,,,A"
     vtg = "GNVTG,84.40,T,,M,10.500,N,19.446,K,A"
     nmea_vectors = [
-        {"sentence": nmea(gga), "type": "GGA", "lat_deg": 40 + 7.038 / 60, "lon_deg": 116 + 31.0 / 60,
-         "alt_m": 45.4, "fix_quality": 1, "num_sv": 12},
+        {
+            "sentence": nmea(gga),
+            "type": "GGA",
+            "lat_deg": 40 + 7.038 / 60,
+            "lon_deg": 116 + 31.0 / 60,
+            "alt_m": 45.4,
+            "fix_quality": 1,
+            "num_sv": 12,
+        },
         {"sentence": nmea(rmc), "type": "RMC", "speed_knots": 10.5, "course_deg": 84.4},
         {"sentence": nmea(vtg), "type": "VTG", "course_deg": 84.4, "speed_kmh": 19.446},
-        {"sentence": nmea("GNGGA,000000.00,0000.0000000,S,00000.0000000,W,0,00,99.9,0.000,M,0.0,M,,"),
-         "type": "GGA", "fix_quality": 0, "note": "no fix"},
+        {
+            "sentence": nmea("GNGGA,000000.00,0000.0000000,S,00000.0000000,W,0,00,99.9,0.000,M,0.0,M,,"),
+            "type": "GGA",
+            "fix_quality": 0,
+            "note": "no fix",
+        },
     ]
     bad_nmea = [
         nmea(gga)[:-5] + "00\r\n",  # wrong checksum
@@ -225,6 +394,12 @@ def build() -> dict:
         "kvh_format_a": kvh,
         "smc100": smc100,
         "canopen": {"node_id": node, "frames": can},
+        "canopen_sdo": {
+            "node_id": node,
+            "request_id": 0x600 + node,
+            "response_id": 0x580 + node,
+            "exchanges": sdo,
+        },
         "slcan": slcan,
         "nmea": {"good": nmea_vectors, "bad": bad_nmea},
     }
