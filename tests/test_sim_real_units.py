@@ -213,6 +213,8 @@ def test_link_hold_delays_every_byte_without_loss_and_shows_host_gaps(tmp_path):
     # each hold: a host gap of the hold's length; the reader may see the last bytes before a hold
     # up to one loop tick late, so a gap is at least hold − a tick; and the longest is the full hold
     long_gaps = gaps[gaps >= hold_ms / 1e3 - TICK_WALL_S]
+    print(f"link hold: {len(msgs)} frames, {len(holds)} holds, host gaps >= hold - tick: "
+          f"{np.round(long_gaps * 1e3, 1).tolist()} ms")
     assert len(long_gaps) >= len(holds) - 1  # the last hold may not have ended before the stop
     assert gaps.max() >= hold_ms / 1e3
     assert len(long_gaps) <= len(holds)  # and no other stall of that length
@@ -253,6 +255,8 @@ def test_link_latency_shifts_arrival_by_the_latency(tmp_path):
     sigma_median_s = 1.25 * (jitter_ms / math.sqrt(3.0)) / math.sqrt(run_s / (4 * jitter_ms / 1e3)) / 1e3
     tolerance_s = 3.0 * sigma_median_s + TICK_WALL_S * 1.0
     shift = float(np.median(shifted) - np.median(base))
+    print(f"link latency: min lag {shifted.min() * 1e3:.1f} ms, median shift {shift * 1e3:.1f} ms "
+          f"(want {latency_ms} ± {tolerance_s * 1e3:.1f} ms)")
     assert abs(shift - latency_ms / 1e3) <= tolerance_s, (shift, tolerance_s)
 
 
@@ -428,3 +432,46 @@ def test_new_flags_refuse_bad_values_in_one_line(capsys):
         SimConfig(link_hold_ms=100.0)
     with pytest.raises(ConfigError, match="jitter"):
         SimConfig(imu_link_latency_ms=5.0, imu_link_jitter_ms=6.0)
+
+
+class _Sink:
+    """A port stand-in for the link's own unit test: records what is written."""
+
+    def __init__(self) -> None:
+        self.data = bytearray()
+
+    def write(self, data: bytes) -> None:
+        self.data += data
+
+
+def test_link_shaper_keeps_order_loses_nothing_and_holds_on_the_wall_clock():
+    """The link alone, with a fake wall clock: latency 50 ± 20 ms at 1000 messages/s never
+    reorders and never releases a message before t + 30 ms or after t + 70 ms (plus the pump step);
+    a hold of 0.3 wall s every 1 device s releases nothing until the wall clock has moved on."""
+    from firmware_sim.link import LinkShaper, LinkSpec
+
+    wall = [0.0]
+    link = LinkShaper(LinkSpec(latency_s=0.05, jitter_s=0.02, hold_period_s=1.0, hold_wall_s=0.3),
+                      np.random.default_rng(0), wall_clock=lambda: wall[0])
+    sink, step_s = _Sink(), 0.005
+    released_at: dict[int, float] = {}
+    for i in range(1, 800):  # to 3.995 device s in pump steps of 5 ms; 5 messages per step
+        t = i * step_s
+        k = np.arange((i - 1) * 5, i * 5)
+        link.send_many(b"".join(int(v).to_bytes(4, "big") for v in k), np.full(5, 4), (k + 1) / 1000.0)
+        before = len(sink.data)
+        link.pump(t, sink)
+        for j in range(before // 4, len(sink.data) // 4):
+            released_at[j] = t
+        wall[0] += step_s / 2.0  # the wall runs at half device speed (time scale 2)
+    got = np.frombuffer(bytes(sink.data), dtype=">u4")
+    assert (got == np.arange(len(got))).all()  # in order, none lost or doubled
+    assert link.queued_bytes == 4 * (3995 - len(got)) and len(got) > 3900
+    t_made = (np.arange(len(got)) + 1) / 1000.0
+    lag = np.array([released_at[j] for j in range(len(got))]) - t_made
+    assert link.holds == 3  # at 1, 2 and 3 device s; each 0.3 wall s = 0.6 device s here
+    clear = np.ones(len(got), dtype=bool)  # due (t + 30…70 ms) outside every hold
+    for start in (1.0, 2.0, 3.0):
+        clear &= (t_made + 0.07 + step_s < start) | (t_made + 0.03 > start + 0.6 + step_s)
+    assert lag.min() >= 0.03 and lag[clear].max() <= 0.07 + step_s
+    assert lag.max() >= 0.6 - 0.07  # a held message waited out the hold
