@@ -427,3 +427,48 @@ def test_golden_sdo_canopen_library_side(golden):
         lib_bus.shutdown()
         dev_bus.shutdown()
     assert seen and all(sent == want for sent, want in seen), [s for s in seen if s[0] != s[1]]
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end: find on a node with another mapping and rate (set only in the node and its EDS)
+# ---------------------------------------------------------------------------------------------
+def test_find_follows_a_swapped_mapping_and_the_nodes_own_rate(tmp_path):
+    """The simulator's node maps z, x | y, status, counter, temperature at 0.1 µg and runs at
+    25 Hz; the bench config names only the user's EDS (rate_hz 0: keep the node's rate). The
+    heading is within 3σ of the noise limit (CONVENTIONS.md), the tilt from the accelerometer
+    within its own noise/bias-instability/misalignment bound, and every dwell has 25 Hz samples."""
+    import uuid
+
+    from test_e2e_find import DWELL_S, POSITIONS, TIME_SCALE, TRUTHS, _check_replay, _noise_limit_deg
+
+    from firmware_sim.config import SimConfig
+    from firmware_sim.physics.sensors import ACCEL_PRESETS
+    from firmware_sim.simulator import Simulator
+    from northfinder.cli.find import measure
+    from northfinder.rundir import RunDir
+    from northfinder.simulate import SimSettings, bench_config
+
+    truth = TRUTHS[0]
+    rate_hz = 25.0
+    sim_cfg = SimConfig(**truth, time_scale=TIME_SCALE, stage_speed_dps=90.0, stage_accel_dps2=360.0,
+                        stage_ringing_decay_s=0.1, accel_rate_hz=rate_hz, accel_mapping="swapped",
+                        can_interface="virtual", can_channel=f"sdo-e2e-{uuid.uuid4().hex[:8]}")
+    settings = SimSettings(**{k: truth[k] for k in ("heading_deg", "pitch_deg", "roll_deg", "latitude_deg")})
+    run_dir = tmp_path / "run"
+    with Simulator(sim_cfg) as endpoints:
+        cfg = bench_config(endpoints, truth["latitude_deg"])
+        cfg.accelerometer.eds = str(SWAPPED_EDS)
+        cfg.run.positions, cfg.run.dwell_s = POSITIONS, DWELL_S
+        assert cfg.validate().accelerometer.rate_hz == 0.0  # nothing about the rate on our side
+        result = measure(cfg, RunDir(run_dir), settings=settings, report=False, progress=False)
+    assert result["complete"]
+    assert all(p["accel_samples"] == int(DWELL_S * rate_hz) for p in result["positions"])
+    limit = _noise_limit_deg(truth, result["duration_device_s"])
+    assert abs(result["error_deg"]) < 3.0 * limit, (result["error_deg"], limit)
+    acc = ACCEL_PRESETS[truth["grade"]]
+    t_total = POSITIONS * DWELL_S
+    tol_deg = np.rad2deg(3e-6 * (max(acc.noise_ug_rt_hz) / np.sqrt(t_total) + max(acc.bias_instability_ug))
+                         + 1e-6 * max(np.abs(acc.misalignment_urad)))
+    assert abs(result["tilt"]["pitch_deg"] - truth["pitch_deg"]) < tol_deg, (result["tilt"], tol_deg)
+    assert abs(result["tilt"]["roll_deg"] - truth["roll_deg"]) < tol_deg, (result["tilt"], tol_deg)
+    _check_replay(run_dir)  # the can.asc replays by the mapping the run read from the node
