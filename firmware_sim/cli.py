@@ -7,6 +7,7 @@ lean so the endpoints appear quickly; the physics and devices load in `Simulator
     firmware-sim                                   # the bench: turntable, IMU, CAN accelerometer
     firmware-sim --scenario ship --sway "roll=10:8,pitch=5:6,yaw=3:10,heave=0.5:7" --lever-arm 1,2,1.5
     firmware-sim --scenario vehicle --lever-arm 0.5,1.5,1.2 --truth-log truth.jsonl
+    firmware-sim --imu-axes y --stage-speed 1 --link-latency 20,5 --link-hold 5,200   # real units
 
 `--lever-arm` is the IMU's (from the centre of rotation) for the bench and the ship, the GNSS
 antenna's (from the IMU) for the vehicle. Scenarios and the truth log: docs/simulator.md.
