@@ -194,3 +194,32 @@ def test_blf_log_survives_a_channel_name_with_a_large_number(tmp_path):
         assert np.array_equal(replayed.accel_g, block.accel_g)
     finally:
         bus.shutdown()
+
+
+def test_a_late_but_complete_burst_over_slcan_is_not_a_loss(pty_pair):
+    """Issue 11's rule on the CAN node: loss is decided by the sample counter and what arrived,
+    host time only bounds the wait. 80 samples held back 1.5 s (an slcan adapter's buffer) and then
+    delivered in one burst through python-can's own slcan client are all there, none lost."""
+    import threading
+
+    from helpers import write_all
+
+    master, slave = pty_pair
+    codec = CanCodec()
+    lines = b""
+    for c in range(250, 330):  # the 8-bit counter wraps inside the burst
+        for can_id, data in (codec.encode("TPDO1", {"accel_x": c, "accel_y": -c}),
+                             codec.encode("TPDO2", {"accel_z": 10**6, "temperature": 2500, "counter": c % 256,
+                                                    "status": 7})):
+            lines += f"t{can_id:03X}{len(data)}{data.hex().upper()}\r".encode()
+    with Accelerometer("slcan", slave, bus_options={"sleep_after_open": 0}) as acc:
+        late = threading.Timer(1.5, lambda: write_all(master, lines))
+        late.start()
+        t0 = time.monotonic()
+        block = acc.read(80, timeout_s=10.0)
+        late.join()
+        stats = acc.stats
+    assert time.monotonic() - t0 >= 1.4  # it did arrive late
+    assert len(block) == 80 and block.lost_samples == 0 and stats.lost_samples == 0
+    assert np.all(np.diff(block.counter) == 1)
+    assert block.accel_g[:, 0].tolist() == [c / 1e6 for c in range(250, 330)]
