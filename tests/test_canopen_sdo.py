@@ -321,8 +321,8 @@ def test_sdo_aborts_are_one_line_naming_node_object_and_code(clocked, tmp_path):
             acc.configure(rate_hz=50)
         acc.start_node()  # nothing lost: the node and the driver go on
         block = acc.read(5, timeout_s=5)
-    assert re.search(r"node 0x10 .*object 2200:0 aborted with 0x06020000", _line(unknown.value))
-    assert re.search(r"node 0x10 .*object 2100:0 \(Sample rate\) aborted with 0x06070010",
+    assert re.search(r"node 0x10: .*object 2200:0 aborted with 0x06020000", _line(unknown.value))
+    assert re.search(r"node 0x10: .*object 2100:0 \(Sample rate\) aborted with 0x06070010",
                      _line(length.value))
     assert len(block) == 5 and block.lost_samples == 0 and sim.node.rate_hz == 100.0
 
@@ -337,7 +337,7 @@ def test_sdo_timeout_with_the_node_silent(clocked):
         assert 0.25 <= time.monotonic() - t0 < 3.0
         acc.start_node()
         block = acc.read(5, timeout_s=5)  # NMT and TPDOs still work: nothing lost
-    assert re.search(r"node 0x10 .*object 1018:1 \(Vendor-ID\) within 0.3 s \(abort 0x05040000",
+    assert re.search(r"node 0x10: .*object 1018:1 \(Vendor-ID\) within 0.3 s \(abort 0x05040000",
                      _line(exc.value))
     assert len(block) == 5 and sim.node.stats.sdo_ignored >= 1
 

@@ -34,6 +34,7 @@ Example::
 from __future__ import annotations
 
 import copy
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -63,6 +64,10 @@ from northfinder.errors import DeviceError
 
 __all__ = ["DEFAULT_EDS_PATH", "Accelerometer", "AccelBlock", "AccelStats", "Emcy", "decode_can_log",
            "samples_to_block"]
+
+# python-canopen logs an SDO timeout at ERROR; with no logging set up, Python's last-resort handler
+# would print it as a second line under our one-line error. The DeviceError says it already.
+logging.getLogger("canopen").addHandler(logging.NullHandler())
 
 DEFAULT_EDS_PATH = Path(__file__).resolve().parent.parent / "data" / "accelerometer.eds"
 SDO_TIMEOUT_S = 1.0  # PROTOCOLS.md §3.1: a client gives up after 1 s (abort 0x05040000)
@@ -332,7 +337,7 @@ class Accelerometer:
         return f"object {index:04X}:{sub}" + (f" ({name})" if name else "")
 
     def _sdo_error(self, verb: str, index: int, sub: int, exc: Exception) -> DeviceError:
-        where = f"node 0x{self.node_id:02X} on {self.port}"
+        where = f"node 0x{self.node_id:02X}"  # the DeviceError's prefix names the port
         if isinstance(exc, KeyError):
             return DeviceError(DEVICE, self.port, f"the EDS {self.eds_path} has no object {index:04X}:{sub}, "
                                f"which the run needs ({verb}) — use the node's own EDS ([accelerometer] eds)")
