@@ -493,3 +493,28 @@ def test_find_on_a_node_silent_on_sdo_is_one_line_and_keeps_the_run_directory(tm
     assert {"config.json", "events.jsonl", "can.asc"} <= {p.name for p in (tmp_path / "run").iterdir()}
     assert read_events(tmp_path / "run")[0] == {"event": "accel_config", "step": "nmt",
                                                 "state": "pre-operational"}
+
+
+def test_check_prints_the_identity_read_over_sdo(tmp_path):
+    """`northfinder check` names the node that answered: identity, device name, mapping, rate —
+    all read over SDO from firmware_sim's node (here with the swapped mapping at 25 Hz and the
+    user's EDS), nothing written."""
+    from helpers import run_cli
+    from test_e2e_find import _bench_toml
+
+    from northfinder.simulate import SimSettings, SimulatorProcess
+
+    sim_toml = tmp_path / "sim.toml"
+    sim_toml.write_text('accel_mapping = "swapped"\naccel_rate_hz = 25\n')
+    with SimulatorProcess(SimSettings(time_scale=1.0, config=str(sim_toml))) as ep:
+        toml = _bench_toml(tmp_path / "bench.toml", ep["turntable"], ep["imu"], ep["can"]["channel"])
+        toml.write_text(toml.read_text().replace("[site]", f"eds = '{SWAPPED_EDS}'\n[site]"))
+        proc = run_cli("check", "--config", str(toml), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    (line,) = [ln for ln in proc.stdout.splitlines() if "accelerometer" in ln]
+    assert line.startswith("ok ")
+    for text in (f"'{ca.DEVICE_NAME}'", f"vendor ID 0x{ca.VENDOR_ID:08X}",
+                 f"product code 0x{ca.PRODUCT_CODE:08X}", f"revision 0x{ca.REVISION:08X}", f"serial number 0x{ca.SERIAL_NUMBER:08X}",
+                 "rate 25 Hz (2100:0)", "TPDO1 0x190: 2004:3 Acceleration z (0.1 ug), 2004:1 Acceleration x",
+                 "TPDO2 0x290: 2004:2 Acceleration y (0.1 ug), 2003:0 Status, 2002:0 Sample counter"):
+        assert text in line, (text, line)
