@@ -514,7 +514,8 @@ def test_check_prints_the_identity_read_over_sdo(tmp_path):
     (line,) = [ln for ln in proc.stdout.splitlines() if "accelerometer" in ln]
     assert line.startswith("ok ")
     for text in (f"'{ca.DEVICE_NAME}'", f"vendor ID 0x{ca.VENDOR_ID:08X}",
-                 f"product code 0x{ca.PRODUCT_CODE:08X}", f"revision 0x{ca.REVISION:08X}", f"serial number 0x{ca.SERIAL_NUMBER:08X}",
+                 f"product code 0x{ca.PRODUCT_CODE:08X}", f"revision 0x{ca.REVISION:08X}",
+                 f"serial number 0x{ca.SERIAL_NUMBER:08X}",
                  "rate 25 Hz (2100:0)", "TPDO1 0x190: 2004:3 Acceleration z (0.1 ug), 2004:1 Acceleration x",
                  "TPDO2 0x290: 2004:2 Acceleration y (0.1 ug), 2003:0 Status, 2002:0 Sample counter"):
         assert text in line, (text, line)
