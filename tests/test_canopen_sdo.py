@@ -133,6 +133,17 @@ def test_aborts(raw_node, payload, code):
     assert node.od[(0x2100, 0)].value == 100  # nothing changed
 
 
+def test_segmented_download(raw_node):
+    node, _, ask = raw_node
+    r = ask(struct.pack("<BHBI", 0x21, 0x2100, 0, 2))  # initiate, size indicated, 2 bytes follow
+    assert bytes(r.data) == struct.pack("<BHB4x", 0x60, 0x2100, 0)
+    r = ask(bytes((0x00 | (7 - 2) << 1 | 1,)) + struct.pack("<H", 40) + bytes(5))  # toggle 0, last
+    assert bytes(r.data) == bytes((0x20,)) + bytes(7) and node.rate_hz == 40.0
+    ask(struct.pack("<BHBI", 0x21, 0x2100, 0, 2))
+    r = ask(bytes((0x10 | (7 - 2) << 1 | 1,)) + struct.pack("<H", 30) + bytes(5))  # wrong toggle
+    assert _abort(r) == (0x2100, 0, ca.ABORT_TOGGLE) and node.rate_hz == 40.0
+
+
 def test_mapping_and_rate_writes_follow_the_state(raw_node):
     node, client, ask = raw_node
     # pre-operational: a third 32-bit object in TPDO1 would make 96 bits

@@ -266,6 +266,9 @@ class SdoServer:
             return sdo_abort(0, 0, ABORT_COMMAND)
         ccs = req[0] >> 5
         index, sub = struct.unpack_from("<HB", req, 1)
+        ongoing = self._upload if ccs == 3 else self._download if ccs == 0 else None
+        if ongoing is not None:  # a segment carries data where the index was: abort on the transfer's
+            index, sub = ongoing[0], ongoing[1]
         try:
             if ccs == 2:  # initiate upload
                 return self._initiate_upload(index, sub)
