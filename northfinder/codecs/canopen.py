@@ -1,12 +1,15 @@
-"""CANopen-style accelerometer node (docs/PROTOCOLS.md §3): frames ⇄ values, no I/O.
+"""CANopen accelerometer node (docs/PROTOCOLS.md §3, §3.1): frames ⇄ values, no I/O.
 
-The frames are described by ``northfinder/data/accelerometer.dbc`` (IDs for node 0x10) and
-decoded with cantools; another node ID uses the same bases (0x080, 0x180, 0x280, 0x700) plus
-its ID, so a frame is looked up in the DBC by ``id - node_id + 0x10``.
+TPDOs are decoded by a :class:`PdoLayout` — the mapping the driver reads from the node over SDO
+(objects, bit lengths, and their scale and unit from the EDS); :func:`default_layout` is the
+reference node's (§3.1 defaults). NMT, heartbeat and EMCY frames (and the TPDOs of the default
+mapping, for raw CAN logs in common tools) are described by ``northfinder/data/accelerometer.dbc``
+(IDs for node 0x10; another node ID uses the same bases 0x080, 0x180, 0x280, 0x700 plus its ID).
 
-:class:`AccelFrameDecoder` is the stateful part shared by the live driver and the replay
-path: it pairs each TPDO2 with the TPDO1 just before it, unwraps the 8-bit counter, counts
-unpaired frames, counter gaps and lost samples, and keeps heartbeats and emergencies.
+:class:`AccelFrameDecoder` is the stateful part shared by the live driver and the replay path:
+it assembles one frame of each TPDO into a sample (the last TPDO, which carries the counter,
+closes it), unwraps the 8-bit counter, counts unpaired frames, counter gaps and lost samples,
+and keeps heartbeats and emergencies.
 """
 
 from __future__ import annotations
