@@ -56,6 +56,8 @@ def e2e_run(tmp_path_factory):
             str(E2E_DURATION_S),
             "--heading-error",
             "90",
+            "--heading-std",
+            "90",
             "--time-scale",
             str(TIME_SCALE),
             "--seed",
@@ -81,6 +83,7 @@ def test_simulated_alignment_from_90_deg_is_within_3_sigma_of_the_truth(e2e_run)
     # the filter started 90° off the truth at the start
     start = result["truth"]["heading_at_start_deg"]
     assert math.isclose((result["initial_heading_deg"] - start) % 360.0, 90.0, abs_tol=1e-9)
+    assert result["initial_heading_std_deg"] == 90.0  # the prior (truth + --heading-error) ± --heading-std
     assert abs(result["error_deg"]) <= 3.0 * result["heading_std_deg"]
     assert result["converged_after_s"] is not None
     assert result["lever_arm_error_m"] < 0.1
@@ -173,6 +176,11 @@ def test_bad_nmea_is_counted_and_skipped_and_ctrl_c_keeps_the_data_and_exits_130
         (["--simulate", "--duration", "0"], "--duration 0"),
         (["--duration", "60"], "--config"),
         (["--config", "bench.toml", "--heading-error", "10"], "--heading-error"),
+        (["--simulate", "--heading-std", "5"], "--heading-std needs a heading"),
+        (["--simulate", "--heading-error", "10", "--heading-std", "abc"], "--heading-std abc"),
+        (["--simulate", "--heading-error", "10", "--heading-std", "0"], "--heading-std 0"),
+        (["--config", "bench.toml", "--heading-std", "5"], "--heading-std needs a heading"),
+        (["--config", "bench.toml", "--heading", "10", "--initial-heading", "20"], "--initial-heading"),
     ],
 )
 def test_flag_mistakes_are_one_line(argv, needle, tmp_path, capsys, monkeypatch):
@@ -306,3 +314,14 @@ def test_hardware_path_on_a_moving_vehicle_refuses_with_one_line(tmp_path, capsy
     t0, info = gr.time_alignment(rd, start, end, None, fixes[-1].time_s - end["utc_ref_s"])
     assert info["method"] == "host" and math.isfinite(t0)
     assert info["imu_chunks"] > 0 and info["gnss_epochs"] > 0
+
+
+def test_the_summary_says_which_start_was_used():
+    """A prior is named with its σ and that it is held while standing; no σ says 'unknown'."""
+    from northfinder.cli.align_gnss import start_text
+
+    assert "prior 40.00° ± 5° (1σ), held while standing still" == start_text(
+        {"initial_heading_deg": 40.0, "initial_heading_std_deg": 5.0}
+    )
+    unknown = start_text({"initial_heading_deg": 0.0, "initial_heading_std_deg": None})
+    assert unknown.startswith("heading unknown")

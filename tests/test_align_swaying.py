@@ -80,6 +80,11 @@ def test_simulated_300_s_alignment_is_within_3_sigma_of_the_truth(e2e_run):
     assert result["time_alignment"]["method"] == "truth-log"
     coarse = result["methods"]["coarse"]
     assert set(coarse) >= {"heading_deg", "heading_std_deg", "pitch_deg", "roll_deg", "error_deg"}
+    # issue 16: under sway the coarse row carries no σ (its noise limit said 0.034° next to −35°), and
+    # the result says what its own σ covers: the simulated grade's bias floor is in it
+    assert coarse["heading_std_deg"] is None and coarse["base_still"] is False
+    assert any("bias floor" in c for c in result["sigma_covers"]["covers"])
+    assert result["diagnostics"]["heading_std_parts_deg"]["bias_prior"] > 0.0
     assert (run_dir / "imu.raw").stat().st_size >= 36 * 300_000
     assert (run_dir / "report.png").stat().st_size > 0
     assert json.loads((run_dir / RESULT).read_text()) == result

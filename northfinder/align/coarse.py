@@ -72,6 +72,7 @@ def coarse_align(
     n_gyro = white_noise_density(w * dt, dt)
     omega_h = OMEGA_EARTH_RAD_S * np.cos(latitude_deg * DEG)
     std = float(np.sqrt(np.mean(n_gyro**2)) / (omega_h * np.sqrt(duration_s)))
+    still = _base_still(w, rate_hz, n_gyro)
     return CoarseSolution(
         heading_deg=float(heading / DEG),
         heading_std_deg=std / DEG,
@@ -80,5 +81,19 @@ def coarse_align(
         duration_device_s=duration_s,
         c_b_n=c_b_n,
         diagnostics={"mean_rate_dph": (w_mean / DEG * 3600.0).tolist(),
-                     "earth_rate_dph": OMEGA_EARTH_RAD_S / DEG * 3600.0},
+                     "earth_rate_dph": OMEGA_EARTH_RAD_S / DEG * 3600.0,
+                     "base_still": still},
     )
+
+
+def _base_still(w: np.ndarray, rate_hz: float, n_gyro: np.ndarray) -> bool:
+    """Whether the 1 s means of the rate scatter no more than the white noise explains (5σ, worst axis).
+
+    Only then is the noise-limit σ the heading's uncertainty; on a moving base the window mean carries
+    the motion, whose residue no σ from the data describes (docs/swaying.md §7)."""
+    k = max(1, int(round(rate_hz)))
+    blocks = w[: (w.shape[0] // k) * k].reshape(-1, k, 3).mean(axis=1)
+    if blocks.shape[0] < 2:
+        return True
+    scatter = blocks.std(axis=0, ddof=1)
+    return bool(np.all(scatter <= 5.0 * n_gyro * np.sqrt(rate_hz / k)))

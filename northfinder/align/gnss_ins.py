@@ -141,6 +141,7 @@ class GnssAlignConfig:
     accel_bias_rw_ug_sqrt_s: float = 1.0
     level_s: float = 5.0
     converged_std_deg: float = 1.0
+    still_speed_m_s: float = 0.2
 
 
 @dataclass
@@ -302,8 +303,17 @@ class _ErrorStateFilter:
         H[3:6, self.LA] = c @ skew3(self.omega_nb_b)  # eq 21: Ĉ (ω_nb^b ×) δla
         H[3:6, self.BG] = -c @ skew3(la)  # gyro bias in ω_nb^b × la
         R = np.diag(np.concatenate([np.asarray(pos_std_m, float) ** 2, np.asarray(vel_std_m_s, float) ** 2]))
+        R += self.second_order_noise()
         S = H @ self.P @ H.T + R
         K = np.linalg.solve(S, H @ self.P).T
+        held = self.heading_rows()
+        if held is not None and math.hypot(vel_m_s[0], vel_m_s[1]) < max(
+                self.cfg.still_speed_m_s, 4.0 * float(np.max(vel_std_m_s))):
+            # Standing still: nothing observes the heading (the antenna is fixed whatever the heading,
+            # and the lever arm term δC·l̂a only trades against δP); what the update would move it by
+            # is noise and linearization error. Consider, not estimate, the heading there (Schmidt):
+            # its gain rows are zero, the Joseph form below keeps P consistent with that gain.
+            K[held] = 0.0
         x = self.x + K @ (z - H @ self.x)
         ikh = np.eye(self.n) - K @ H
         self.P = ikh @ self.P @ ikh.T + K @ R @ K.T  # Joseph form
@@ -320,6 +330,14 @@ class _ErrorStateFilter:
         g[self.A, self.A] = g_att
         self.P = g @ self.P @ g.T
         return z
+
+    def second_order_noise(self) -> np.ndarray:
+        """Measurement covariance of what the linear model drops; zero here (SinCosFilter adds it)."""
+        return np.zeros((6, 6))
+
+    def heading_rows(self) -> slice | None:
+        """Rows of the heading states held (not estimated) while standing still; None: not held."""
+        return None
 
     def feedback(self, x: np.ndarray) -> None:
         """Paper eq 23: every estimate corrects the INS and the sensors; the error state resets to 0
@@ -436,6 +454,28 @@ class SinCosFilter(_ErrorStateFilter):
         out = np.eye(4)
         out[2:4, 2:4] = [[math.cos(d), -math.sin(d)], [math.sin(d), math.cos(d)]]
         return out
+
+    def second_order_noise(self) -> np.ndarray:
+        """Covariance of the terms eq 18 and 21 drop: −δC·δla (position) and −δC(ω_nb × δla) (velocity).
+
+        Both are products of two error states. While the heading and the lever arm are both uncertain
+        they are metres — far above the GNSS noise — and a filter that ignores them claims a σ its
+        errors do not keep (4.9σ just after convergence). With J(u) = Σ_i u_i J(e_i) linear in u and
+        independent zero-mean errors, Cov = Σ_ij (W P_la Wᵀ)_ij J(e_i) P_att J(e_j)ᵀ, W = I or [ω_nb×].
+        """
+        out = np.zeros((6, 6))
+        if not self.estimate_lever:
+            return out
+        p_att, p_la = self.P[self.A, self.A], self.P[self.LA, self.LA]
+        jac = [self.attitude_jacobian(e) for e in np.eye(3)]
+        for rows, w in ((slice(0, 3), np.eye(3)), (slice(3, 6), skew3(self.omega_nb_b))):
+            p_u = w @ p_la @ w.T
+            out[rows, rows] = sum(p_u[i, j] * jac[i] @ p_att @ jac[j].T for i in range(3) for j in range(3))
+        return out
+
+    def heading_rows(self) -> slice:
+        """η1, η2."""
+        return slice(self.A.start, self.A.start + 2)
 
     def heading_var(self) -> float:
         """Var of sin δψ = ĉη1 − ŝη2 (≈ δψ once small)."""

@@ -50,6 +50,8 @@ __all__ = [
     "white_noise_density",
     "minimum_duration_s",
     "predicted_heading_std_deg",
+    "GRADE_BIAS_1SIGMA",
+    "grade_bias_prior",
 ]
 
 KVH_GYRO_RANGE_DPS = 490.0
@@ -190,6 +192,25 @@ class SwayingSolution:
     earth_axis_ib0: np.ndarray = field(repr=False)
     """Unit Earth-axis direction in the i_b0 frame."""
     diagnostics: dict = field(default_factory=dict, repr=False)
+
+
+GRADE_BIAS_1SIGMA: dict[str, tuple[float, float]] = {
+    "nav": (0.0061, 25.0),
+    "kvh1760": (0.26, 410.0),
+    "tactical-mems": (4.6, 700.0),
+    "consumer": (177.0, 20400.0),
+}
+"""1σ turn-on bias of a horizontal gyro [°/h] (turn-on ⊕ bias instability) and accelerometer [µg] per IMU
+class (the data-sheet class figures of docs/simulator.md's grades). A fixed base cannot separate a
+gyro bias from the Earth rate: it is the bias floor εE/(Ωe·cos L) the reported σ must carry."""
+
+
+def grade_bias_prior(grade: str | None) -> dict[str, float]:
+    """align_swaying's bias-prior keyword arguments for an IMU class; {} when the class is unknown."""
+    if grade is None or grade not in GRADE_BIAS_1SIGMA:
+        return {}
+    gyro_dph, accel_ug = GRADE_BIAS_1SIGMA[grade]
+    return {"gyro_bias_dph": gyro_dph, "accel_bias_ug": accel_ug}
 
 
 def minimum_duration_s(max_sway_period_s: float) -> float:
@@ -393,10 +414,17 @@ def align_swaying(
 
     c_b_n, axis = solve(f_win)
     angles = _angles(c_b_n)
-    std = _propagate(solve, f_win, cov_phi, cov_acc)
-
     residual = f_win - (c_b_ib0_end @ c_b_n.T @ _earth_rotation_n0_to_nt(t_end, lat) @ m_win.T).T \
         if method != "circle" else None
+    g_map, jac_f = _jacobians(solve, f_win)
+    white = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, 0.0, 0.0)
+    cov_leak = _leakage_covariance(residual, f_win, cov_phi, cov_acc)
+    parts = {
+        "white_noise": _angles_cov(g_map, jac_f, *white),
+        "bias_prior": _angles_cov(g_map, jac_f, cov_phi - white[0], cov_acc - white[1]),
+        "sway_leakage": jac_f @ cov_leak @ jac_f.T,
+    }
+    std = np.sqrt(np.maximum(np.diag(sum(parts.values())), 0.0))
     diag = {
         "n_samples": n,
         "lost_samples_filled": n_lost,
@@ -409,6 +437,7 @@ def align_swaying(
         "earth_axis_elevation_deg": float(np.arcsin(np.clip(axis @ c_b_ib0_end @ c_b_n[2], -1, 1)) / DEG),
         "fit_residual_rms_ug": (float(np.sqrt(np.mean(residual**2))) / STANDARD_GRAVITY_M_S2 * 1e6
                                 if residual is not None else None),
+        "heading_std_parts_deg": {k: float(np.sqrt(max(v[0, 0], 0.0))) for k, v in parts.items()},
     }
     return SwayingSolution(
         heading_deg=float(angles[0]),
@@ -604,12 +633,13 @@ def _gls_step(f_win, m_n0, c_ib0_nt, t_end_s, lat, whiten):
     return r_nt @ c_n0_ib0.T, axis
 
 
-def _propagate(solve, f_win, cov_phi, cov_acc):
-    """1σ of heading, pitch, roll [deg] by first-order propagation (docs/swaying.md §5).
+def _jacobians(solve, f_win):
+    """Maps of the window errors onto (heading, pitch, roll) [deg] (docs/swaying.md §5).
 
     A window sees e_j = [F_j×]Φ_j + A_j; the end attitude sees φ(t_end). The Jacobian of the
     angles with respect to F_j and φ(t_end) is taken by central differences of the fit itself
     (3m + 3 evaluations of a closed-form solution), so the same code serves every method.
+    Returns (g_map for [Φ; φ(t_end)], jac_f for A).
     """
     m = f_win.shape[0]
     scale_f = 1e-6 * np.linalg.norm(f_win[0])
@@ -626,9 +656,50 @@ def _propagate(solve, f_win, cov_phi, cov_acc):
         dp = np.zeros(3)
         dp[a] = scale_p
         jac_p[:, a] = _angle_diff(_angles(solve(f_win, dp)[0]), _angles(solve(f_win, -dp)[0])) / (2 * scale_p)
-    g_map = np.hstack([jac_f @ _block_skew(f_win), jac_p])
-    cov = g_map @ cov_phi @ g_map.T + jac_f @ cov_acc @ jac_f.T
-    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+    return np.hstack([jac_f @ _block_skew(f_win), jac_p]), jac_f
+
+
+def _angles_cov(g_map, jac_f, cov_phi, cov_acc):
+    """Covariance of (heading, pitch, roll) [deg²] from the window noise covariances."""
+    return g_map @ cov_phi @ g_map.T + jac_f @ cov_acc @ jac_f.T
+
+
+def _propagate(solve, f_win, cov_phi, cov_acc):
+    """1σ of heading, pitch, roll [deg] by first-order propagation (docs/swaying.md §5)."""
+    g_map, jac_f = _jacobians(solve, f_win)
+    return np.sqrt(np.maximum(np.diag(_angles_cov(g_map, jac_f, cov_phi, cov_acc)), 0.0))
+
+
+def _leakage_covariance(residual, f_win, cov_phi, cov_acc):
+    """Covariance of what the windows carry beyond the modelled errors: sway leakage (and any other
+    unmodelled error — scale factor, misalignment — that the cone fit leaves in its residual), measured
+    from the data.
+
+    Split along each window's specific force u_j = F_j/|F_j| (≈ the vertical, where heave leaks and
+    heading is not) and across it (where the heading is): per part, the residual power corrected for
+    the fitted parameters (2 of 3 across, 1 along) minus what the modelled noise and bias priors put
+    there, and Cov_j = p_across·(I − u_j u_jᵀ) + p_along·u_j u_jᵀ, independent from window to window
+    (choices measured against the Monte Carlo scatter in docs/swaying.md §5). Zero for the circle fit
+    (no residual model) or where the modelled errors explain the residual.
+    """
+    m = f_win.shape[0]
+    if residual is None or m < 2:
+        return np.zeros((3 * m, 3 * m))
+    u = f_win / np.linalg.norm(f_win, axis=1, keepdims=True)
+    s_f = _block_skew(f_win)
+    model = s_f @ cov_phi[: 3 * m, : 3 * m] @ s_f.T + cov_acc
+    blocks = np.stack([model[3 * j: 3 * j + 3, 3 * j: 3 * j + 3] for j in range(m)])
+    along_model = float(np.mean(np.einsum("ji,jik,jk->j", u, blocks, u)))
+    across_model = float(np.mean(np.trace(blocks, axis1=1, axis2=2))) - along_model
+    r_along = np.einsum("ji,ji->j", residual, u)
+    p_along = float(np.sum(r_along**2)) / max(m - 1, 1) - along_model
+    p_across = (float(np.sum(residual**2) - np.sum(r_along**2)) / max(2 * m - 2, 1)) - across_model / 2.0
+    p_across, p_along = max(p_across, 0.0), max(p_along, 0.0)
+    out = np.zeros((3 * m, 3 * m))
+    for j in range(m):
+        uu = np.outer(u[j], u[j])
+        out[3 * j: 3 * j + 3, 3 * j: 3 * j + 3] = p_across * (np.eye(3) - uu) + p_along * uu
+    return out
 
 
 def _angle_diff(a_deg: np.ndarray, b_deg: np.ndarray) -> np.ndarray:

@@ -38,6 +38,7 @@ from northfinder.align.swaying import (
     METHODS,
     align_swaying_block,
     attitude_quaternions,
+    grade_bias_prior,
     minimum_duration_s,
     quat_to_dcm,
     velocity_increments_ib0,
@@ -375,6 +376,8 @@ def compute_swaying_result(
         raise InputError("no IMU samples were read; nothing to align")
     rate = float(start["imu"]["rate_hz"])
     lat = float(start["latitude_deg"])
+    grade = (start.get("simulate") or {}).get("grade") or start.get("imu_grade")
+    prior = grade_bias_prior(grade)
     sol = align_swaying_block(
         block,
         lat,
@@ -382,8 +385,10 @@ def compute_swaying_result(
         method=start["method"],
         max_sway_period_s=float(start["max_sway_period_s"]),
         height_m=float(start.get("height_m", 0.0)),
+        **prior,
     )
     coarse = coarse_align(block.gyro_rad_s, block.accel_g, rate, lat)
+    still = bool(coarse.diagnostics["base_still"])
     main = {
         "heading_deg": sol.heading_deg,
         "heading_std_deg": sol.heading_std_deg,
@@ -406,14 +411,17 @@ def compute_swaying_result(
             sol.method: dict(main),
             "coarse": {
                 "heading_deg": coarse.heading_deg,
-                "heading_std_deg": coarse.heading_std_deg,
+                "heading_std_deg": coarse.heading_std_deg if still else None,
                 "pitch_deg": coarse.pitch_deg,
                 "roll_deg": coarse.roll_deg,
-                "note": "static analytic coarse alignment (window means); its σ is the "
-                "still-base noise limit and ignores the sway",
+                "note": "static analytic coarse alignment (window means); σ: the still-base noise limit"
+                if still
+                else "static analytic coarse alignment (window means); no σ: the base moves, the "
+                "window-mean rate carries the sway, not the Earth rate",
                 **coarse.diagnostics,
             },
         },
+        "sigma_covers": sigma_covers(prior),
         "diagnostics": sol.diagnostics,
         "imu": {**end["imu"], "rate_hz": rate},
     }
@@ -424,6 +432,19 @@ def compute_swaying_result(
         for m in result["methods"].values():
             m["error_deg"] = float(wrap_deg_180(m["heading_deg"] - truth["heading_deg"]))
     return json.loads(json.dumps(jsonable(result), allow_nan=False)), sol
+
+
+def sigma_covers(prior: dict[str, float]) -> dict[str, Any]:
+    """What the reported 1σ includes and what it does not (the summary prints both)."""
+    covers = ["white gyro and accelerometer noise (measured)",
+              "sway leakage and other errors left in the cone fit's residual (measured)"]
+    omits = ["scale-factor and misalignment errors that mimic the Earth-rate cone"]
+    if prior:
+        covers.append(f"gyro bias floor of the grade ({prior['gyro_bias_dph']:g} °/h, "
+                      f"accelerometer {prior['accel_bias_ug']:g} µg, 1σ)")
+    else:
+        omits.append("the gyro bias floor εE/(Ωe·cos L): the IMU grade is not known")
+    return {"covers": covers, "omits": omits}
 
 
 def result_from_run(

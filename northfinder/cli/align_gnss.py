@@ -36,7 +36,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=None,
         metavar="DEG",
-        help="gnss, simulated: start the filter at the truth heading + DEG (default: heading unknown)",
+        help="gnss, simulated: the heading prior is the truth heading at the start + DEG (its σ: "
+        "--heading-std; default unknown)",
+    )
+    runs.add_flag(
+        parser,
+        "--heading-std",
+        default=None,
+        metavar="DEG|unknown",
+        help="gnss: 1σ of the heading prior (--heading DEG, or simulated truth + --heading-error); "
+        "'unknown' (default) starts from that heading but lets the first turn decide",
     )
     runs.add_flag(
         parser,
@@ -52,10 +61,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=None,
         metavar="DEG",
-        help="gnss, hardware: a rough heading to start from (default: unknown, any value works)",
+        help="gnss, hardware: the same as --heading (kept for older scripts)",
     )
     runs.add_flag(
-        parser, "--heading", type=float, default=None, metavar="DEG", help="simulated initial heading"
+        parser,
+        "--heading",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="simulated: the true heading; gnss on hardware: the heading prior (σ: --heading-std)",
     )
     runs.add_flag(
         parser, "--latitude", type=float, default=None, metavar="DEG", help="simulated site latitude"
@@ -107,12 +121,48 @@ def _check(args: argparse.Namespace) -> float:
     return duration
 
 
+def parse_heading_std(text: str | None) -> float | None:
+    """'--heading-std 5' → 5.0; 'unknown' or absent → None (the filter's uniform prior)."""
+    if text is None or str(text).strip().lower() == "unknown":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and 0.0 < value <= 180.0):
+        raise InputError(f"--heading-std {text}: give the prior's 1σ in degrees (0 < σ ≤ 180) or 'unknown'")
+    return value
+
+
+def heading_prior(args: argparse.Namespace) -> tuple[float | None, float | None]:
+    """(prior heading on hardware or None, its σ or None) from --heading/--initial-heading/--heading-std.
+
+    Simulated, the prior heading is the truth at the start + --heading-error (gnss_run.compute); its σ
+    is --heading-std. A σ without a heading to attach it to is refused."""
+    std = parse_heading_std(getattr(args, "heading_std", None))
+    heading = None
+    if not args.simulate:
+        given = [v for v in (getattr(args, "heading", None), args.initial_heading) if v is not None]
+        if len(given) == 2:
+            raise InputError("--heading and --initial-heading both given; use --heading")
+        heading = given[0] if given else None
+        if heading is not None and not math.isfinite(heading):
+            raise InputError(f"--heading {heading}: give degrees clockwise from true north")
+        if std is not None and heading is None:
+            raise InputError("--heading-std needs a heading: give --heading DEG (the prior's centre)")
+    elif std is not None and args.heading_error is None and args.initial_heading is None:
+        raise InputError("--heading-std needs a heading: with --simulate give --heading-error DEG "
+                         "(the prior = truth + DEG)")
+    return heading, std
+
+
 def default_out() -> Path:
     return runs.default_out(gr.KIND)
 
 
 def run(args: argparse.Namespace) -> int:
     duration = _check(args)
+    prior_heading, prior_std = heading_prior(args)
     lever = parse_lever_arm(args.lever_arm)
     rd = RunDir(args.out or default_out())
     t_wall = time.monotonic()
@@ -129,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
         )
         settings = {
             "initial_heading_deg": args.initial_heading,
-            "heading_std_deg": None,
+            "heading_std_deg": prior_std,
             "heading_error_deg": args.heading_error,
             "lever_arm_prior_m": [0.0, 0.0, 0.0],  # the filter is not told the simulator's lever arm
             "lever_arm_std_m": UNKNOWN_LEVER_ARM_STD_M,
@@ -157,8 +207,8 @@ def run(args: argparse.Namespace) -> int:
         g = bench.gnss
         prior = lever or g.lever_arm_m
         settings = {
-            "initial_heading_deg": args.initial_heading,
-            "heading_std_deg": None,
+            "initial_heading_deg": prior_heading,
+            "heading_std_deg": prior_std,
             "heading_error_deg": None,
             "lever_arm_prior_m": list(prior) if prior is not None else [0.0, 0.0, 0.0],
             "lever_arm_std_m": g.lever_arm_std_m if prior is not None else UNKNOWN_LEVER_ARM_STD_M,
@@ -197,12 +247,21 @@ def _f(v: Any, fmt: str, none: str = "—") -> str:
     return none if v is None else format(v, fmt)
 
 
+def start_text(result: dict[str, Any]) -> str:
+    """Which heading start the filter used: a prior with its σ, or unknown (the first turn decides)."""
+    psi0, std = result["initial_heading_deg"], result.get("initial_heading_std_deg")
+    if std is None:
+        return f"heading unknown (filter started at {psi0:.2f}°, uniform prior; the first turn decides)"
+    return f"prior {psi0:.2f}° ± {std:g}° (1σ), held while standing still"
+
+
 def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
     """The rich summary: heading ± σ, convergence, lever arm, both filters, truth and errors, counters."""
     from rich.table import Table
 
     console = runs.summary_console(console, 132)
     head = runs.summary_head("northfinder align --mode gnss", result)
+    head.add_row("start", start_text(result))
     head.add_row("converged after", f"{_f(result['converged_after_s'], '.1f')} s (1σ < 1° from then on)")
     la, las = result["lever_arm_m"], result["lever_arm_std_m"]
     head.add_row(

@@ -62,7 +62,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "1,2,1.5); gnss: the antenna's position in IMU axes [m]",
     )
     runs.add_flag(
-        parser, "--heading", type=float, default=None, metavar="DEG", help="simulated (mean) heading"
+        parser,
+        "--heading",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="simulated: the true (mean) heading; gnss on hardware: the heading prior (σ: --heading-std)",
     )
     runs.add_flag(
         parser,
