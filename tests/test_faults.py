@@ -274,10 +274,12 @@ def test_imu_port_that_disappears_and_comes_back_is_reconnected_and_the_position
 
 
 def test_imu_silent_for_good_stops_the_run_after_n_attempts_with_its_data_saved(tmp_path):
-    # silent from position 3's dwell on: every attempt times out (1 s host), the run stops
+    # silent from after position 3's dwell (it ends near 28.7 s device; position 4's starts after
+    # 32 s: a move, the settle and its 1 s margin, the 1 s dwell grid): every attempt times out
+    # (1 s host), the run stops
     run_dir = tmp_path / "run"
     with pytest.raises(RunFailed) as info:
-        _in_process(run_dir, ["imu-silence=25:100000"], positions=5)
+        _in_process(run_dir, ["imu-silence=30.5:100000"], positions=5)
     msg = str(info.value)
     assert "failed 3 times" in msg and "imu" in msg and str(run_dir) in msg and "--resume" in msg
     assert len(_positions(run_dir)) == 3
