@@ -160,15 +160,17 @@ def update_statistics(state: dict[str, Any]) -> None:
     state["mean_tilt_deg"] = sum(r["tilt_deg"] for r in runs) / len(runs)
 
 
-def _set_aside(cdir: Path, run_dir: Path, state: dict[str, Any], index: int, reason: str) -> int:
-    """Move a stopped/failed find's directory aside (kept for replay); its attempt number."""
+def _set_aside(cdir: Path, run_dir: Path, state: dict[str, Any], index: int, reason: str) -> Path:
+    """Move a stopped/failed find's directory aside (kept for replay and find --resume); the new
+    path, which `reason` (the find's own line) then names instead of the old one."""
     attempt = 1 + sum(1 for f in state["failed"] if f["index"] == index)
     aside = run_dir.with_name(f"{run_dir.name}.failed-{attempt}")
     os.replace(run_dir, aside)
+    reason = reason.replace(str(run_dir), str(aside))
     state["failed"].append(
         {"index": index, "run_dir": str(aside.relative_to(cdir)), "reason": reason, "utc": now_utc()}
     )
-    return attempt
+    return aside
 
 
 def run_campaign(
@@ -198,7 +200,8 @@ def run_campaign(
         if entry is None:
             if run_dir.exists():  # left incomplete by a session killed outright: kept aside
                 why = "left incomplete by a killed session"
-                attempts[index] = _set_aside(cdir, run_dir, state, index, why)
+                _set_aside(cdir, run_dir, state, index, why)
+                attempts[index] = attempts.get(index, 0) + 1
                 write_state(cdir, state)
             try:
                 if prompt is not None and step != last_step:
@@ -210,7 +213,7 @@ def run_campaign(
             except (NorthfinderError, KeyboardInterrupt) as exc:
                 why = "stopped by Ctrl-C" if isinstance(exc, KeyboardInterrupt) else str(exc)
                 if run_dir.exists():  # kept for replay; the find is measured again on --resume
-                    _set_aside(cdir, run_dir, state, index, why)
+                    why = str(_set_aside(cdir, run_dir, state, index, why)).join(why.split(str(run_dir)))
                 raise _stopped(cdir, state, total, why, exc) from None
             entry = run_entry(run_dir, cdir, index, step, repeat, reference)
             if entry is None:

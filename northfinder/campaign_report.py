@@ -113,6 +113,7 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     runs, main, stats = state["runs"], state["method"], state["statistics"]
     dev = np.array([r["error_deg"] for r in runs]) * ARCMIN_PER_DEG
@@ -127,12 +128,13 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
     a1.axhline(0.0, color="k", lw=1, label="reference azimuth")
     m = stats[main]
     a1.axhline(m["mean_arcmin"], color="C3", ls="--", lw=1, label=f"mean {m['mean_arcmin']:+.3f}′")
-    a1.set_xlabel("find")
+    a1.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    a1.set_xlabel("find (plan order)")
     a1.set_ylabel(f"{main} heading − reference [arc min] (bar: reported 1σ)")
     a1.set_title(
         f"{len(runs)} finds, {state['plan']['positions']} positions × {state['plan']['dwell_s']:g} s"
     )
-    a1.legend(fontsize=8)
+    a1.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=3)
     a1.grid(True, alpha=0.3)
 
     a2.hist(dev, bins=max(5, min(20, len(dev) // 2)), density=True, alpha=0.6, label="finds")
@@ -144,7 +146,8 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
             np.exp(-0.5 * ((g - m["mean_arcmin"]) / s0) ** 2) / (s0 * np.sqrt(2 * np.pi)),
             label=f"N(mean, reported σ {s0:.3f}′)",
         )
-    a2.set_xlabel("deviation [arc min]")
+    a2.set_xlabel(f"{main} deviation [arc min]")
+    a2.set_ylabel("density")
     a2.set_title(f"observed std {m['std_arcmin']:.3f}′" if m.get("std_arcmin") is not None else "")
     a2.legend(fontsize=8)
     a2.grid(True, alpha=0.3)
@@ -156,6 +159,7 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
     a3.errorbar(xi - 0.1, means, yerr=stds, fmt="o", capsize=4, label="mean ± std")
     a3.plot(xi + 0.1, [stats[n]["rms_arcmin"] for n in names], "s", label="RMS")
     a3.axhline(0.0, color="k", lw=1)
+    _clip_outliers(a3, xi, names, stats)
     a3.set_xticks(xi, [SHORT.get(n, n) for n in names], rotation=30, ha="right")
     a3.set_ylabel("deviation from reference [arc min]")
     a3.set_title("every method")
@@ -165,3 +169,28 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+def _clip_outliers(ax: Any, xi: np.ndarray, names: list[str], stats: dict[str, Any]) -> None:
+    """Scale the method panel to the methods within 5× of the best one's extent; a method far
+    off (the uncompensated one on a tilted table) is written in as text at the panel's edge."""
+    extent = [abs(stats[n]["mean_arcmin"]) + (stats[n]["std_arcmin"] or 0.0) for n in names]
+    extent = [max(e, stats[n]["rms_arcmin"]) for e, n in zip(extent, names, strict=True)]
+    limit = 5.0 * min(extent)
+    if max(extent) <= limit:
+        return
+    lim = 1.15 * max(e for e in extent if e <= limit)
+    ax.set_ylim(-lim, lim)
+    for x, n, e in zip(xi, names, extent, strict=True):
+        if e > limit:
+            s = stats[n]
+            ax.text(
+                x,
+                0.0,
+                f"off scale:\nmean {s['mean_arcmin']:+.1f}′\nstd {s['std_arcmin']:.1f}′\n"
+                f"RMS {s['rms_arcmin']:.1f}′",
+                ha="center",
+                va="center",
+                fontsize=8,
+                bbox={"facecolor": "white", "alpha": 0.8},
+            )

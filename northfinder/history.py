@@ -306,7 +306,10 @@ def row_from_run(run_dir: str | Path, unit: str | None = None) -> dict[str, Any]
         "run_dir": str(d),
         "time_utc": _utc(start, d / "result.json"),
         "kind": kind,
-        "unit": unit or unit_from_argv(config.get("argv")) or os.environ.get(ENV_UNIT, ""),
+        "unit": unit
+        or unit_from_argv(config.get("argv"))
+        or _campaign_unit(parent)
+        or os.environ.get(ENV_UNIT, ""),
         "latitude_deg": result.get("latitude_deg"),
         "positions": result.get("positions_measured") if kind == "find" else None,
         "dwell_s": run_cfg.get("dwell_s", start.get("dwell_s")) if kind == "find" else None,
@@ -320,6 +323,12 @@ def row_from_run(run_dir: str | Path, unit: str | None = None) -> dict[str, Any]
         "campaign": str(parent) if in_campaign else None,
         "simulated": int(bool(config.get("simulate") or result.get("truth"))),
     }
+
+
+def _campaign_unit(parent: Path) -> str | None:
+    """The unit of the campaign a find belongs to (a resumed campaign's command line has none)."""
+    c = _read(parent / CAMPAIGN_JSON)
+    return (c or {}).get("unit") or None
 
 
 def _campaign_row(d: Path, unit: str | None) -> dict[str, Any] | None:

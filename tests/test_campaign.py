@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -129,6 +130,7 @@ def test_ctrl_c_mid_find_then_resume_repeats_and_loses_nothing(tmp_path):
     assert proc.returncode == 130, err[-3000:]
     line = northfinder_line(err)
     assert "1 of 4 finds done" in line and f"--resume {out}" in line
+    assert "stopped by SIGINT" in line and f"saved in {out / 'step1-run02.failed-1'} " in line  # its new name
     stopped = json.loads((out / "campaign.json").read_text())
     assert [r["index"] for r in stopped["runs"]] == [0] and not stopped["complete"]
     assert [f["index"] for f in stopped["failed"]] == [1]
@@ -143,8 +145,20 @@ def test_ctrl_c_mid_find_then_resume_repeats_and_loses_nothing(tmp_path):
     for r in c["runs"]:
         starts = [e for e in read_events(out / r["run_dir"]) if e["event"] == "start"]
         assert len(starts) == 1  # every listed find measured in exactly one session
-    finds = [r for r in _history_rows(tmp_path / "runs" / history.DB_NAME) if r["kind"] == "find"]
+    live = _history_rows(tmp_path / "runs" / history.DB_NAME)
+    finds = [r for r in live if r["kind"] == "find"]
     assert sorted(Path(r["run_dir"]).name for r in finds) == sorted(r["run_dir"] for r in c["runs"])
+    assert {r["unit"] for r in live} == {"SN-T1"}  # the resumed session's command line has no --unit
+    shutil.copytree(tmp_path / "runs", tmp_path / "copy")
+    history.rebuild(tmp_path / "copy", tmp_path / "rebuilt.sqlite")
+    rebuilt = _history_rows(tmp_path / "rebuilt.sqlite")
+    assert _relative(rebuilt, tmp_path / "copy") == _relative(live, tmp_path / "runs")
+
+
+def _relative(rows: list[dict], root: Path) -> list[dict]:
+    """Rows with their paths relative to the runs directory (a copy has other absolute paths)."""
+    rel = lambda p: p and str(Path(p).relative_to(root.resolve()))  # noqa: E731
+    return [{**r, "run_dir": rel(r["run_dir"]), "campaign": rel(r["campaign"])} for r in rows]
 
 
 def test_real_bench_campaign_prompts_and_records_the_reference(tmp_path):
