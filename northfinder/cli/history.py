@@ -83,6 +83,12 @@ def _f(v: Any, fmt: str) -> str:
     return "—" if v is None else format(v, fmt)
 
 
+def _short(path: str) -> str:
+    """A run directory relative to the working directory when it lies below it."""
+    rel = os.path.relpath(path)
+    return path if rel.startswith("..") else rel
+
+
 def _print(rows: list[dict[str, Any]], db: Path) -> None:
     from rich.console import Console
     from rich.markup import escape
@@ -106,7 +112,10 @@ def _print(rows: list[dict[str, Any]], db: Path) -> None:
         "faults",
         "run directory",
     ):
-        t.add_column(escape(col), justify="right" if "[" in col else "left")
+        wide = col in ("run directory", "faults")
+        t.add_column(
+            escape(col), justify="right" if "[" in col else "left", overflow="fold" if wide else "ellipsis"
+        )
     for r in rows:
         plan = (
             f"{r['positions']} × {r['dwell_s']:g} s"
@@ -126,6 +135,6 @@ def _print(rows: list[dict[str, Any]], db: Path) -> None:
             _f(r["error_deg"], "+.4f"),
             _f(r["tilt_deg"], ".3f"),
             escape(faults),
-            escape(r["run_dir"]),
+            escape(_short(r["run_dir"])),
         )
     console.print(t)
