@@ -136,12 +136,16 @@ def test_ctrl_c_mid_find_then_resume_repeats_and_loses_nothing(tmp_path):
     assert [f["index"] for f in stopped["failed"]] == [1]
     assert (out / "step1-run02.failed-1" / "events.jsonl").exists()  # the stopped find kept for replay
     first = (out / "step1-run01" / "result.json").read_bytes()
+    # as if killed between the find's result.json and campaign.json: the complete find is not listed
+    stopped["runs"] = []
+    (out / "campaign.json").write_text(json.dumps(stopped))
 
     resumed = run_cli("campaign", "--resume", str(out), cwd=tmp_path, timeout_s=600)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     c = _check_complete(out)
     assert c["sessions"] == 2
-    assert (out / "step1-run01" / "result.json").read_bytes() == first  # not measured again
+    assert (out / "step1-run01" / "result.json").read_bytes() == first  # adopted, not measured again
+    assert "find 1/4 (step1-run01" in resumed.stderr
     for r in c["runs"]:
         starts = [e for e in read_events(out / r["run_dir"]) if e["event"] == "start"]
         assert len(starts) == 1  # every listed find measured in exactly one session
