@@ -326,3 +326,17 @@ def test_sigma_is_honest_just_after_convergence(paper_runs):
         worst[e0] = float(np.max(np.abs(err[ok]) / sd[ok]))
     print("\nmax |error|/σ once σ < 1°: " + ", ".join(f"{e:g}°: {z:.1f}" for e, z in worst.items()))
     assert max(worst.values()) <= 4.0
+
+
+def test_standing_is_judged_on_the_horizontal_velocity():
+    """NMEA has no vertical velocity (its σ says 'not measured'): that σ may not make a driving
+    vehicle look still — it did, and the heading was held for a whole simulated run."""
+    from types import SimpleNamespace
+
+    from northfinder.align.gnss_ins import SinCosFilter
+
+    flt = SimpleNamespace(cfg=GnssAlignConfig())
+    nmea_std = (0.05, 0.05, 100.0)
+    assert SinCosFilter.standing(flt, (0.03, -0.02, 0.0), nmea_std)
+    assert not SinCosFilter.standing(flt, (2.0, 1.0, 0.0), nmea_std)
+    assert not SinCosFilter.standing(flt, (0.0, 0.0, 0.0), (100.0, 100.0, 100.0))  # velocity lost

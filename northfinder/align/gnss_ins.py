@@ -307,8 +307,7 @@ class _ErrorStateFilter:
         S = H @ self.P @ H.T + R
         K = np.linalg.solve(S, H @ self.P).T
         held = self.heading_rows()
-        if held is not None and math.hypot(vel_m_s[0], vel_m_s[1]) < max(
-                self.cfg.still_speed_m_s, 4.0 * float(np.max(vel_std_m_s))):
+        if held is not None and self.standing(vel_m_s, vel_std_m_s):
             # Standing still: nothing observes the heading (the antenna is fixed whatever the heading,
             # and the lever arm term δC·l̂a only trades against δP); what the update would move it by
             # is noise and linearization error. Consider, not estimate, the heading there (Schmidt):
@@ -330,6 +329,14 @@ class _ErrorStateFilter:
         g[self.A, self.A] = g_att
         self.P = g @ self.P @ g.T
         return z
+
+    def standing(self, vel_m_s, vel_std_m_s) -> bool:
+        """The fix says the vehicle stands: horizontal speed below `still_speed_m_s` (or 4σ of its noise
+        if larger), measured well enough to tell (horizontal σ below `still_speed_m_s`; the Up σ is
+        irrelevant — NMEA has no vertical velocity)."""
+        sd_h = float(np.max(np.asarray(vel_std_m_s, float)[:2]))
+        still = self.cfg.still_speed_m_s
+        return sd_h < still and math.hypot(vel_m_s[0], vel_m_s[1]) < max(still, 4.0 * sd_h)
 
     def second_order_noise(self) -> np.ndarray:
         """Measurement covariance of what the linear model drops; zero here (SinCosFilter adds it)."""

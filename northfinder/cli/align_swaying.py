@@ -243,9 +243,12 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
         t.add_row(
             name + (" *" if name == result["method"] else ""),
             f"{m['heading_deg']:.4f}",
-            f"{m['heading_std_deg']:.4f}",
+            "—" if m["heading_std_deg"] is None else f"{m['heading_std_deg']:.4f}",
             "—" if err is None else f"{err:+.4f}",
         )
     console.print(t)
+    cov = result.get("sigma_covers")
+    if cov:
+        console.print(f"1σ covers: {'; '.join(cov['covers'])}. Not in it: {'; '.join(cov['omits'])}.")
     if run_dir is not None:
         console.print(f"run directory: {run_dir}")
