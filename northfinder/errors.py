@@ -38,6 +38,13 @@ class DeviceError(NorthfinderError):
         super().__init__(f"{where}: {message}")
 
 
+class RunDamaged(NorthfinderError):
+    """A run directory whose files are damaged (a raw log cut short, an event that cannot be
+    decoded): exits 4, unlike a usage error (2), so scripts can tell the two apart."""
+
+    exit_code = 4
+
+
 class RunAborted(NorthfinderError):
     """The run was stopped (Ctrl-C / SIGTERM); the data measured so far has been saved."""
 

@@ -17,7 +17,7 @@ import contextlib
 import logging
 import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -27,7 +27,9 @@ from northfinder.config import RunConfig, position_plan_deg
 from northfinder.constants import DPH
 from northfinder.drivers.turntable import StageError
 from northfinder.errors import ConfigError, DeviceError, NorthfinderError
-from northfinder.rundir import PositionMeans, RunDir, position_means
+from northfinder.estimators.means import PositionMeans, position_means
+from northfinder.rundir import RunDir
+from northfinder.stopflag import StopFlag
 
 log = logging.getLogger(__name__)
 
@@ -137,33 +139,6 @@ class SettleResult:
     settle_s: float
     settled: bool
     windows: int
-
-
-class StopFlag:
-    """Signal handlers that only raise a flag (the first time) so that no I/O is torn in half."""
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-
-    def __bool__(self) -> bool:
-        return self.signum is not None
-
-    def _handler(self, signum: int, frame: Any) -> None:
-        if self.signum is not None:
-            raise KeyboardInterrupt  # second signal: stop now
-        self.signum = signum
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[StopFlag]:
-        """Install SIGINT and SIGTERM handlers for the duration (main thread only)."""
-        old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            for s in old:
-                signal.signal(s, self._handler)
-            yield self
-        finally:
-            for s, h in old.items():
-                signal.signal(s, h)
 
 
 def settle_reached(z_windows_dph: list[np.ndarray], ratio: float, rest_dph: float) -> bool:

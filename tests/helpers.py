@@ -1,10 +1,12 @@
 """Helpers several test files share: bytes into a pty, the CLI as a subprocess (run, or stopped
-with Ctrl-C at a chosen point), a run's events, and the one-line error checks."""
+with Ctrl-C at a chosen point), a run's events, the one-line error checks, and the in-test
+transport that pins a driver's write/reply pairs (ExpectedProtocol)."""
 
 from __future__ import annotations
 
 import json
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -15,6 +17,64 @@ from pathlib import Path
 from northfinder.rundir import EVENTS
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+class ExpectedProtocol:
+    """An in-test transport (pymeasure's expected_protocol style): asserts each write the driver
+    makes, in order, and serves the reply that goes with it. It pins the protocol; it is not a
+    device model.
+
+    `pairs`: (what the driver must write, the reply or None); a str gets `terminator` appended
+    (b"\r\n" for the SMC100's lines), bytes are taken as they are. `initial`: bytes readable
+    before any write (a streaming IMU). Serves both driver surfaces: the line transport's
+    `read_until` and the byte stream's `read_available`.
+    """
+
+    def __init__(self, pairs: Sequence[tuple[str | bytes, str | bytes | None]], *, terminator: bytes = b"",
+                 initial: bytes = b"", url: str = "expected://device"):
+        self.url = url
+        self._terminator = terminator
+        self._pairs = [(self._bytes(send), None if reply is None else self._bytes(reply))
+                       for send, reply in pairs]
+        self._rx: queue.Queue[bytes] = queue.Queue()
+        if initial:
+            self._rx.put(initial)
+        self.closed = False
+
+    def _bytes(self, item: str | bytes) -> bytes:
+        return item if isinstance(item, bytes) else item.encode() + self._terminator
+
+    def write(self, data: bytes) -> None:
+        assert self._pairs, f"unexpected write {data!r}: the protocol is finished"
+        send, reply = self._pairs.pop(0)
+        assert data == send, f"wrote {data!r}, expected {send!r}"
+        if reply:
+            self._rx.put(reply)
+
+    def read_until(self, terminator: bytes = b"\r\n", size: int | None = None) -> bytes:
+        try:
+            return self._rx.get_nowait()
+        except queue.Empty:
+            return b""
+
+    def read_available(self, max_bytes: int = 1 << 16) -> bytes:
+        try:
+            return self._rx.get(timeout=0.02)
+        except queue.Empty:
+            return b""
+
+    def reset_input_buffer(self) -> None:
+        while not self._rx.empty():
+            self._rx.get_nowait()
+
+    def note(self, text: str) -> None:
+        pass
+
+    def close(self) -> None:
+        self.closed = True
+
+    def assert_done(self) -> None:
+        assert not self._pairs, f"the driver did not send {self._pairs}"
 
 
 def write_all(fd: int, data: bytes) -> None:

@@ -26,7 +26,7 @@ from helpers import (
 )
 
 from northfinder import history
-from northfinder.campaign_stats import deviation_deg
+from northfinder.estimators.campaign_stats import deviation_deg
 
 pytestmark = pytest.mark.slow
 

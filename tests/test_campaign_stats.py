@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from northfinder.campaign_stats import deviation_deg, method_statistics, spread, step_statistics
+from northfinder.estimators.campaign_stats import deviation_deg, method_statistics, spread, step_statistics
 
 
 def test_deviation_wraps_across_north():

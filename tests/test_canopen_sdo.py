@@ -455,8 +455,8 @@ def test_find_follows_a_swapped_mapping_and_the_nodes_own_rate(tmp_path):
     from firmware_sim.config import SimConfig
     from firmware_sim.physics.sensors import ACCEL_PRESETS
     from firmware_sim.simulator import Simulator
-    from northfinder.cli.find import measure
     from northfinder.rundir import RunDir
+    from northfinder.runs.find import measure
     from northfinder.simulate import SimSettings, bench_config
 
     truth = TRUTHS[0]
@@ -471,7 +471,7 @@ def test_find_follows_a_swapped_mapping_and_the_nodes_own_rate(tmp_path):
         cfg.accelerometer.eds = str(SWAPPED_EDS)
         cfg.run.positions, cfg.run.dwell_s = POSITIONS, DWELL_S
         assert cfg.validate().accelerometer.rate_hz == 0.0  # nothing about the rate on our side
-        result = measure(cfg, RunDir(run_dir), settings=settings, report=False, progress=False)
+        result = measure(cfg, RunDir(run_dir), settings=settings, report=False,)
     assert result["complete"]
     assert all(p["accel_samples"] == int(DWELL_S * rate_hz) for p in result["positions"])
     limit = _noise_limit_deg(truth, result["duration_device_s"])

@@ -4,14 +4,13 @@ write, and the replay path giving bit-identical arrays."""
 from __future__ import annotations
 
 import os
-import queue
 import threading
 import time
 import tty
 
 import numpy as np
 import pytest
-from helpers import write_all
+from helpers import ExpectedProtocol, write_all
 
 from northfinder.codecs import kvh
 from northfinder.drivers.imu import Imu, decode_imu_stream
@@ -156,41 +155,10 @@ def test_missing_port(tmp_path):
 # ---------------------------------------------------------------- configuration, pinned
 
 
-class ExpectedBytes:
-    """In-test transport: asserts each write; its reply bytes become readable afterwards."""
-
-    url = "expected://kvh"
-
-    def __init__(self, pairs: list[tuple[bytes, bytes | None]], initial: bytes = b""):
-        self._pairs = list(pairs)
-        self._rx: queue.Queue[bytes] = queue.Queue()
-        if initial:
-            self._rx.put(initial)
-
-    def write(self, data: bytes) -> None:
-        assert self._pairs, f"unexpected write {data!r}"
-        send, reply = self._pairs.pop(0)
-        assert data == send
-        if reply:
-            self._rx.put(reply)
-
-    def read_available(self, max_bytes: int = 1 << 16) -> bytes:
-        try:
-            return self._rx.get(timeout=0.02)
-        except queue.Empty:
-            return b""
-
-    def close(self) -> None:
-        pass
-
-    def assert_done(self) -> None:
-        assert not self._pairs, f"not sent: {self._pairs}"
-
-
 def test_configure_dance_discards_the_two_invalid_messages():
     before, _ = _frames(5, start_seq=0)
     after, gyro = _frames(7, start_seq=5, seed=4)
-    proto = ExpectedBytes(
+    proto = ExpectedProtocol(
         [
             (b"=CONFIG,1\n", None),
             (b"=DR,100\n", None),
@@ -216,7 +184,7 @@ def test_configure_dance_discards_the_two_invalid_messages():
 
 
 def test_query_outside_config_mode_enters_and_leaves():
-    proto = ExpectedBytes([(b"=CONFIG,1\n", None), (b"?DR\n", b"DR,1000\n"), (b"=CONFIG,0\n", None)])
+    proto = ExpectedProtocol([(b"=CONFIG,1\n", None), (b"?DR\n", b"DR,1000\n"), (b"=CONFIG,0\n", None)])
     with Imu("expected://kvh", transport=proto, wait_for_data=False) as imu:
         assert imu.query("dr") == "1000"
     proto.assert_done()
@@ -224,13 +192,13 @@ def test_query_outside_config_mode_enters_and_leaves():
 
 def test_configure_rejects_bad_values_and_silence():
     with pytest.raises(ConfigError, match="rot_format"):
-        Imu("expected://kvh", transport=ExpectedBytes([]), rot_format="ANGLE")
-    with Imu("expected://kvh", transport=ExpectedBytes([]), wait_for_data=False) as imu:
+        Imu("expected://kvh", transport=ExpectedProtocol([]), rot_format="ANGLE")
+    with Imu("expected://kvh", transport=ExpectedProtocol([]), wait_for_data=False) as imu:
         with pytest.raises(ConfigError, match="rate_hz 333"):
             imu.configure(rate_hz=333)
         with pytest.raises(ConfigError, match="rot_units"):
             imu.configure(rot_units="GRAD")
-    proto = ExpectedBytes([(b"=CONFIG,1\n", None), (b"?DR\n", None), (b"=CONFIG,0\n", None)])
+    proto = ExpectedProtocol([(b"=CONFIG,1\n", None), (b"?DR\n", None), (b"=CONFIG,0\n", None)])
     with Imu("expected://kvh", transport=proto, wait_for_data=False, timeout_s=0.2) as imu:
         with pytest.raises(DeviceError, match="no answer to \\?DR"):
             imu.query("DR")

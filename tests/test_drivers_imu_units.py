@@ -19,7 +19,8 @@ from northfinder.codecs import kvh
 from northfinder.drivers.imu import Imu, decode_imu_stream
 from northfinder.errors import InputError
 from northfinder.estimators.heading import solve_heading
-from northfinder.rundir import PositionMeans, _solve, position_means
+from northfinder.estimators.means import PositionMeans, position_means
+from northfinder.runs.find import _solve
 
 GARBAGE = 3.0e4  # what a unit leaves in a field it flags not valid (built-in test, rate change)
 

@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+from helpers import ExpectedProtocol
 
 from northfinder.codecs import kvh
 from northfinder.drivers.turntable import StageError, Turntable
@@ -16,44 +17,8 @@ from northfinder.errors import DeviceError
 from northfinder.transport import SerialTransport
 
 
-class ExpectedProtocol:
-    """An in-test transport: asserts each write and serves the reply that goes with it.
-
-    It pins the protocol (what the driver sends, in which order); it is not a device model.
-    """
-
-    url = "expected://smc100"
-
-    def __init__(self, pairs: list[tuple[str, str | None]]):
-        self._pairs = list(pairs)
-        self._replies: list[bytes] = []
-        self.closed = False
-
-    def write(self, data: bytes) -> None:
-        assert self._pairs, f"unexpected write {data!r}: the protocol is finished"
-        send, reply = self._pairs.pop(0)
-        assert data == send.encode() + b"\r\n"
-        if reply is not None:
-            self._replies.append(reply.encode() + b"\r\n")
-
-    def read_until(self, terminator: bytes = b"\r\n", size: int | None = None) -> bytes:
-        return self._replies.pop(0) if self._replies else b""
-
-    def reset_input_buffer(self) -> None:
-        self._replies.clear()
-
-    def note(self, text: str) -> None:
-        pass
-
-    def close(self) -> None:
-        self.closed = True
-
-    def assert_done(self) -> None:
-        assert not self._pairs, f"the driver did not send {self._pairs}"
-
-
 def _stage(pairs):
-    proto = ExpectedProtocol(pairs)
+    proto = ExpectedProtocol(pairs, terminator=b"\r\n", url="expected://smc100")
     return Turntable("expected://smc100", transport=proto), proto
 
 

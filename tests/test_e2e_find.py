@@ -25,7 +25,8 @@ from helpers import northfinder_line, only_line, read_events, run_cli, sigint_wh
 from northfinder.config import BenchConfig
 from northfinder.estimators.limits import noise_limit_heading_std_deg
 from northfinder.rotations import tilt_and_azimuth
-from northfinder.rundir import RESULT, RunDir, jsonable, replay
+from northfinder.rundir import RESULT, RunDir, jsonable
+from northfinder.runs.find import replay
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 
 pytestmark = pytest.mark.slow
@@ -135,7 +136,7 @@ def fast_stage_50hz(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("truth", TRUTHS, ids=[f"truth{k}-{t['grade']}" for k, t in enumerate(TRUTHS)])
 def test_find_against_firmware_sim_process_over_ptys_and_slcan(tmp_path, fast_stage_50hz, truth):
-    from northfinder.cli.find import measure
+    from northfinder.runs.find import measure
 
     settings = SimSettings(**truth, time_scale=TIME_SCALE, config=str(fast_stage_50hz))
     run_dir = tmp_path / "run"
@@ -147,7 +148,6 @@ def test_find_against_firmware_sim_process_over_ptys_and_slcan(tmp_path, fast_st
             RunDir(run_dir),
             settings=settings,
             report=False,
-            progress=False,
             can_kwargs={"sleep_after_open": 0.05},
         )
     _check_accuracy(result, truth)
@@ -160,7 +160,7 @@ def test_find_against_firmware_sim_process_over_ptys_and_slcan(tmp_path, fast_st
 def _in_process_run(tmp_path: Path, interface: str, channel: str) -> None:
     from firmware_sim.config import SimConfig
     from firmware_sim.simulator import Simulator
-    from northfinder.cli.find import measure
+    from northfinder.runs.find import measure
 
     truth = TRUTHS[0]
     sim_cfg = SimConfig(
@@ -178,7 +178,7 @@ def _in_process_run(tmp_path: Path, interface: str, channel: str) -> None:
     with Simulator(sim_cfg) as endpoints:
         assert endpoints["can"]["interface"] == interface
         cfg = _run_cfg(bench_config(endpoints, truth["latitude_deg"]))
-        result = measure(cfg, RunDir(run_dir), settings=settings, report=True, progress=False)
+        result = measure(cfg, RunDir(run_dir), settings=settings, report=True,)
     _check_accuracy(result, {**truth, **settings.truth(), "grade": truth["grade"]})
     _check_replay(run_dir)
     assert (run_dir / "report.png").stat().st_size > 10_000

@@ -23,7 +23,8 @@ import pytest
 
 from northfinder.estimators.limits import noise_limit_heading_std_deg
 from northfinder.rotations import tilt_and_azimuth
-from northfinder.rundir import RESULT, RunDir, jsonable, replay
+from northfinder.rundir import RESULT, RunDir, jsonable
+from northfinder.runs.find import replay
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 
 pytestmark = pytest.mark.slow
@@ -67,7 +68,7 @@ def _find(tmp_path: Path, sim_toml: str, faults: tuple[str, ...] = (), seed: int
     """One find on firmware-sim with `sim_toml` (+ the 50 Hz node); the run dir, result and the
     IMU probe's line from `northfinder check`."""
     from northfinder.cli.check import probe_imu
-    from northfinder.cli.find import measure
+    from northfinder.runs.find import measure
 
     conf = tmp_path / "sim.toml"
     conf.write_text(sim_toml + f"accel_rate_hz = {ACCEL_RATE_HZ}\n")
@@ -83,7 +84,7 @@ def _find(tmp_path: Path, sim_toml: str, faults: tuple[str, ...] = (), seed: int
         for key, value in bench.items():
             setattr(cfg.turntable, key, value)
         cfg.validate()
-        result = measure(cfg, RunDir(run_dir), settings=settings, report=False, progress=False,
+        result = measure(cfg, RunDir(run_dir), settings=settings, report=False,
                          can_kwargs={"sleep_after_open": 0.05})
         probe = probe_imu(cfg)  # after the run: the simulator is warmed up (check waits 2 s)
     return run_dir, result, probe

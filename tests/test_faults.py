@@ -30,7 +30,8 @@ import pytest
 
 from northfinder.config import BenchConfig
 from northfinder.errors import ConfigError, DeviceError
-from northfinder.rundir import EVENTS, RESULT, RunDir, jsonable, replay
+from northfinder.rundir import EVENTS, RESULT, RunDir, jsonable
+from northfinder.runs.find import replay
 from northfinder.sequencer import DISTURBANCE_Z, RunFailed, disturbance_z
 from northfinder.simulate import SimSettings, bench_config
 
@@ -82,7 +83,7 @@ def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS,
     settle criterion waits out a bump that starts before the dwell, so a fixed time is not enough).
     """
     from firmware_sim.simulator import Simulator
-    from northfinder.cli.find import measure
+    from northfinder.runs.find import measure
 
     sim = Simulator(_sim_config(faults))
     if during_dwell is not None:
@@ -95,7 +96,7 @@ def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS,
         cfg.imu.link_timeout_s = link_timeout_s
         cfg.validate()
         settings = SimSettings(**TRUTH, time_scale=TIME_SCALE)
-        return measure(cfg, RunDir(run_dir), settings=settings, report=False, progress=False,
+        return measure(cfg, RunDir(run_dir), settings=settings, report=False,
                        seq_kwargs={"read_timeout_s": 1.0, **seq_kwargs})
 
 
@@ -164,7 +165,7 @@ def test_imu_byte_loss_resyncs_and_gaps_come_from_the_sequence_number(run_a):
 
 
 def test_accelerometer_loss_emcy_and_heartbeat_loss_are_counted_and_surfaced(run_a, capsys):
-    from northfinder.cli.find import print_summary
+    from northfinder.cli._summary import print_summary
 
     run_dir, result = run_a
     acc = result["faults"]["accel"]
@@ -296,15 +297,15 @@ def test_imu_silent_for_good_stops_the_run_after_n_attempts_with_its_data_saved(
 
 def test_stage_not_referenced_is_homed_or_a_clear_error_when_homing_is_disabled(tmp_path):
     from firmware_sim.simulator import Simulator
-    from northfinder.cli.find import measure
     from northfinder.drivers.turntable import StageError, Turntable
+    from northfinder.runs.find import measure
 
     with Simulator(_sim_config([])) as endpoints:
         cfg = bench_config(endpoints, TRUTH["latitude_deg"])
         cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
         cfg.turntable.allow_home = False
         with pytest.raises(StageError) as info:
-            measure(cfg.validate(), RunDir(tmp_path / "run"), report=False, progress=False)
+            measure(cfg.validate(), RunDir(tmp_path / "run"), report=False,)
         assert "not referenced" in str(info.value) and "allow_home" in str(info.value)
         assert endpoints["turntable"] in str(info.value)
         # the same port opened twice: the second open names the port
@@ -465,7 +466,7 @@ def test_stage_that_stalls_again_on_the_retry_is_stopped_and_the_run_ends_with_i
     import threading
 
     from firmware_sim.simulator import Simulator
-    from northfinder.cli.find import measure
+    from northfinder.runs.find import measure
 
     run_dir = tmp_path / "run"
     sim = Simulator(_sim_config(["stage-stall=5"]))
@@ -489,7 +490,7 @@ def test_stage_that_stalls_again_on_the_retry_is_stopped_and_the_run_ends_with_i
         try:
             with pytest.raises(RunFailed) as info:
                 measure(cfg.validate(), RunDir(run_dir), settings=SimSettings(**TRUTH, time_scale=TIME_SCALE),
-                        report=False, progress=False, seq_kwargs={"read_timeout_s": 1.0})
+                        report=False, seq_kwargs={"read_timeout_s": 1.0})
         finally:
             done.set()
             watcher.join()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from northfinder.config import RunConfig
-from northfinder.rundir import position_means
+from northfinder.estimators.means import position_means
 from northfinder.sequencer import settle_reached
 
 RATE_HZ = 1000.0

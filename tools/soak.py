@@ -50,9 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     from firmware_sim.config import SimConfig
     from firmware_sim.faults import parse_faults
     from firmware_sim.simulator import Simulator
-    from northfinder.cli.find import measure
     from northfinder.errors import NorthfinderError
-    from northfinder.rundir import RunDir, jsonable, replay
+    from northfinder.rundir import RunDir, jsonable
+    from northfinder.runs.find import measure, replay
     from northfinder.simulate import SimSettings, bench_config
 
     truth = {"heading_deg": 123.4, "pitch_deg": 2.0, "roll_deg": -1.2, "latitude_deg": 48.0}
@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         rss_start = rss_mib()
         try:
             settings = SimSettings(**truth, time_scale=args.time_scale)
-            result = measure(cfg, RunDir(out), settings=settings, report=False, progress=False,
+            result = measure(cfg, RunDir(out), settings=settings, report=False,
                              seq_kwargs={"on_progress": on_progress})
         except NorthfinderError as exc:
             failed.append(f"the run stopped: {exc}")

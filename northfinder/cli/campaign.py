@@ -9,14 +9,18 @@ simulated heading (`--headings`), the truth is the reference.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import sys
+import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-from northfinder import campaign as cp
+from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.errors import InputError
+from northfinder.runs import campaign as cp
+from northfinder.runs.find import FindRequest, run_find
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -129,7 +133,7 @@ def _prompt(step: int, reference_deg: float) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from northfinder import history
-    from northfinder.campaign_report import print_campaign, write_figure
+    from northfinder.cli._campaign_report import print_campaign, write_figure
 
     if args.db:
         os.environ[history.ENV_DB] = str(Path(args.db).resolve())  # the finds record there too
@@ -143,9 +147,19 @@ def run(args: argparse.Namespace) -> int:
         cdir, state = _new(args)
     cp.write_state(cdir, state)
     prompt = None if state["simulate"] else _prompt
-    state = cp.run_campaign(cdir, state, prompt=prompt, echo=lambda s: print(s, file=sys.stderr))
+    state = cp.run_campaign(cdir, state, runner=_run_find, prompt=prompt,
+                            echo=lambda s: print(s, file=sys.stderr))
     write_figure(state, cdir / "campaign.png")
     print_campaign(state)
     print(f"campaign directory: {cdir} (campaign.json, campaign.png)")
-    history.record_or_warn(cdir, unit=state.get("unit") or None)
     return 0
+
+
+def _run_find(req: FindRequest, summary_path: Path) -> None:
+    """One find of the campaign with the live progress view; its summary goes to `summary_path`."""
+    t_wall = time.monotonic()
+    summary_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(summary_path, "w", encoding="utf-8") as fh, contextlib.redirect_stdout(fh):
+        result, rundir, label = run_find(req, progress=ProgressView)
+        print_summary(result, run_dir=rundir.path)
+    print(f"wall time {time.monotonic() - t_wall:.1f} s ({label})", file=sys.stderr)

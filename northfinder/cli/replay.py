@@ -4,8 +4,8 @@ A `find` run: decodes imu.raw and can.asc with the drivers' pure decoders, cuts 
 events log, and runs the same per-position means and estimator as the live run. An `align` run
 (its config.json says `"kind": "align-gnss"` or `"align-swaying"`): the mode's own replay
 function recomputes it from imu.raw (and gnss.nmea) and the events. Either way the result is
-compared with the run's result.json. Exit 0 for a complete run, 1 for an incomplete one, the
-usual error codes for a directory that is not a run.
+compared with the run's result.json. Exit 0 for a complete run, 1 for an incomplete one, 2 for
+a directory that is not a run (or a usage error), 4 for a damaged run (a raw log cut short).
 """
 
 from __future__ import annotations
@@ -17,14 +17,16 @@ from pathlib import Path
 from typing import Any
 
 from northfinder import config as bench
-from northfinder.rundir import RESULT, RunDir, jsonable, replay
+from northfinder.cli._summary import print_summary
+from northfinder.rundir import RESULT, RunDir, jsonable
+from northfinder.runs.find import replay
 
 INCOMPLETE_EXIT = 1
 
 # run kind -> (module with the replay function, its name, module with print_summary)
 ALIGN_REPLAYS = {
-    "align-gnss": ("northfinder.align.gnss_run", "replay_gnss_run", "northfinder.cli.align_gnss"),
-    "align-swaying": ("northfinder.align.swaying_run", "replay_swaying_run", "northfinder.cli.align_swaying"),
+    "align-gnss": ("northfinder.runs.gnss", "replay_gnss_run", "northfinder.cli.align_gnss"),
+    "align-swaying": ("northfinder.runs.swaying", "replay_swaying_run", "northfinder.cli.align_swaying"),
 }
 
 
@@ -115,8 +117,6 @@ def run(args: argparse.Namespace) -> int:
         f"{head}; replayed heading {again['heading_deg']:.6f}° ± {again['heading_std_deg']:.6f}°, {verdict}"
     )
     if not args.quiet:
-        from northfinder.cli.find import print_summary
-
         print_summary(again)
     if args.json:
         RunDir(Path(args.json).parent, create=True).write_json(Path(args.json).name, again)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import struct
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -424,3 +425,52 @@ class AccelFrameDecoder:
             status=ints[:, 5].astype(np.uint8),
             timestamp_s=np.array([r[6] for r in rows], dtype=np.float64),
         )
+
+
+# -- decoded samples in edge units (the live driver and replay share these) --------------------
+@dataclass(frozen=True)
+class AccelBlock:
+    """Consecutive paired samples. `lost_samples` counts gaps inside the block."""
+
+    counter: np.ndarray  # int64 [n], unwrapped device counter
+    accel_g: np.ndarray  # float64 [n, 3]
+    temperature_c: np.ndarray  # float64 [n]
+    status: np.ndarray  # uint8 [n]
+    lost_samples: int
+
+    def __len__(self) -> int:
+        return len(self.counter)
+
+
+def _divisor(scale: float) -> float:
+    """1e-6 → 1e6: dividing by the exact integer rounds µg → g correctly."""
+    inv = 1.0 / scale
+    return float(round(inv)) if abs(inv - round(inv)) < 1e-9 * inv else inv
+
+
+def samples_to_block(raw: RawAccelSamples, layout: PdoLayout) -> AccelBlock:
+    """Raw samples → an AccelBlock in g and °C, each axis scaled by its mapped object's EDS unit."""
+    counter = np.asarray(raw.counter, dtype=np.int64)
+    lost = int(counter[-1] - counter[0] + 1 - len(counter)) if len(counter) else 0
+    accel = np.empty(raw.accel_raw.shape, dtype=np.float64)
+    for j, role in enumerate("xyz"):
+        accel[:, j] = raw.accel_raw[:, j].astype(np.float64) / _divisor(layout.find(role).scale)
+    temp_obj = layout.find("temperature")
+    temperature = (raw.temperature_raw.astype(np.float64) / _divisor(temp_obj.scale) if temp_obj is not None
+                   else np.full(len(counter), np.nan))
+    return AccelBlock(counter=counter, accel_g=accel, temperature_c=temperature,
+                      status=raw.status.astype(np.uint8), lost_samples=lost)
+
+
+def decode_accel_frames(frames: Iterable[tuple[int, bytes, float, bool, bool]], node_id: int = 0x10,
+                        dbc_path: str | Path | None = None,
+                        layout: PdoLayout | dict | None = None) -> tuple[AccelBlock, AccelStats]:
+    """Decode received frames `(can_id, data, timestamp, is_extended, is_remote)` of the node's
+    traffic (replay of a CAN log) by `layout` (the mapping the run read; default the reference)."""
+    codec = CanCodec(node_id, dbc_path)
+    if isinstance(layout, dict):
+        layout = PdoLayout.from_dict(layout)
+    decoder = AccelFrameDecoder(codec, layout)
+    for can_id, data, timestamp, is_extended, is_remote in frames:
+        decoder.feed(can_id, data, timestamp, is_extended, is_remote)
+    return samples_to_block(decoder.drain(), decoder.layout), decoder.stats

@@ -399,3 +399,60 @@ class KvhDecoder:
         for name, present, n in zip(AXIS_NAMES, self.axes.present, cleared.tolist(), strict=True):
             if present:
                 setattr(self.stats, f"invalid_{name}", getattr(self.stats, f"invalid_{name}") + n)
+
+
+# -- decoded samples in edge units (the live driver and replay share these) --------------------
+@dataclass(frozen=True)
+class ImuBlock:
+    """Consecutive decoded samples. `lost_samples` counts gaps inside the block.
+
+    A field whose status bit is cleared (PROTOCOLS.md §2: not valid, or an axis the unit does not
+    have) is NaN in `gyro_rad_s` / `accel_g`, so it is excluded from every mean, never averaged."""
+
+    sample_index: np.ndarray  # int64 [n], device sample count
+    gyro_rad_s: np.ndarray  # float64 [n, 3], NaN where not valid
+    accel_g: np.ndarray  # float64 [n, 3], NaN where not valid
+    status: np.ndarray  # uint8 [n]
+    temperature_c: np.ndarray  # float64 [n]
+    lost_samples: int
+    rate_hz: float
+
+    @property
+    def valid(self) -> np.ndarray:
+        """bool [n, 6]: each axis's valid bit (gyro x y z, accel x y z)."""
+        return valid_mask(self.status)
+
+    @property
+    def time_s(self) -> np.ndarray:
+        """Device time of each sample: sample_index / rate_hz."""
+        return self.sample_index / self.rate_hz
+
+    def __len__(self) -> int:
+        return len(self.sample_index)
+
+
+def frames_to_block(sample_index: np.ndarray, frames: np.ndarray, rate_hz: float, rot_format: str,
+                    rot_units: str) -> ImuBlock:
+    """Decoded format-A frames → an ImuBlock in rad/s and g (live and replay use this one)."""
+    scale = gyro_scale_to_rad_s(rate_hz, rot_format, rot_units)
+    index = np.asarray(sample_index, dtype=np.int64)
+    lost = int(index[-1] - index[0] + 1 - len(index)) if len(index) else 0
+    valid = valid_mask(frames["status"])
+    return ImuBlock(
+        sample_index=index,
+        gyro_rad_s=np.where(valid[:, :3], frames["gyro"].astype(np.float64) * scale, np.nan),
+        accel_g=np.where(valid[:, 3:], frames["accel"].astype(np.float64), np.nan),
+        status=frames["status"].astype(np.uint8),
+        temperature_c=frames["temperature"].astype(np.float64),
+        lost_samples=lost,
+        rate_hz=float(rate_hz),
+    )
+
+
+def decode_imu_stream(raw: bytes, rate_hz: float = 1000.0, rot_format: str = "DELTA",
+                      rot_units: str = "RAD") -> tuple[ImuBlock, ImuStats]:
+    """Decode a whole raw IMU log (replay): every good frame (fields flagged not valid are NaN,
+    as live), and the stream's counters."""
+    decoder = KvhDecoder()
+    out = decoder.feed(raw)
+    return frames_to_block(out.sample_index, out.frames, rate_hz, rot_format, rot_units), decoder.stats

@@ -1,9 +1,10 @@
 """What the byte-streaming drivers (IMU, GNSS) share: one background read loop, one hand-off of
 a reader error, one bounded wait — built once, python-can `BusABC` style, on a small surface.
 
-A subclass sets `port`, `timeout_s`, `_t` (a transport with `read_available()` and `close()`),
-`_cond` (a Condition) and `_error`, implements :meth:`_on_bytes`, and calls
-:meth:`_start_reader`.
+A subclass calls ``StreamReader.__init__(port, timeout_s)`` (which owns the shared state: the
+port, the Condition, the reader's error), opens its transport into `_t` (`read_available()` and
+`close()`), implements :meth:`_on_bytes`, and calls :meth:`_start_reader`. :func:`wait_until` is
+the one bounded wait on a Condition; the CAN accelerometer waits on it too.
 """
 
 from __future__ import annotations
@@ -16,15 +17,40 @@ from typing import Any
 from northfinder.errors import DeviceError
 
 
+def wait_until(
+    cond: threading.Condition,
+    ready: Callable[[], bool],
+    timeout_s: float,
+    error: Callable[[], BaseException | None],
+    on_timeout: Callable[[], BaseException],
+) -> None:
+    """With `cond` held: wait until `ready()`. `error()` (a reader's or a bus's error, or None) is
+    raised as soon as it is set; after `timeout_s` host seconds, `on_timeout()` is raised. Host
+    time only bounds the wait; `ready()` decides in device terms (samples, counters)."""
+    deadline = time.monotonic() + timeout_s
+    while not ready():
+        exc = error()
+        if exc is not None:
+            raise exc
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise on_timeout()
+        cond.wait(remaining)
+
+
 class StreamReader:
     """Background reader over a byte transport; a context manager."""
 
     device = "device"
-    port: str
-    timeout_s: float
-    _t: Any
-    _cond: threading.Condition
-    _error: BaseException | None
+
+    def __init__(self, port: str, timeout_s: float) -> None:
+        self.port = port
+        self.timeout_s = float(timeout_s)
+        self._t: Any = None
+        """The byte transport (set by the subclass once it is open)."""
+        self._cond = threading.Condition()
+        self._error: BaseException | None = None
+        """The reader thread's error, handed to the next waiting call."""
 
     def _on_bytes(self, data: bytes, idle_s: float) -> None:
         """New bytes from the port, called with `_cond` held. `idle_s`: host seconds the port was
@@ -71,14 +97,8 @@ class StreamReader:
     ) -> None:
         """With `_cond` held: wait until `ready()`. The reader's error (port gone, I/O error) is
         raised as it is; after `timeout_s` a DeviceError naming the port with `timeout_message()`."""
-        deadline = time.monotonic() + timeout_s
-        while not ready():
-            if self._error is not None:
-                raise self._error
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise DeviceError(self.device, self.port, timeout_message())
-            self._cond.wait(remaining)
+        wait_until(self._cond, ready, timeout_s, lambda: self._error,
+                   lambda: DeviceError(self.device, self.port, timeout_message()))
 
     # -- lifetime ----------------------------------------------------------------------------
     def close(self) -> None:

@@ -38,28 +38,30 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import can
 import canopen
-import numpy as np
 from canopen.objectdictionary import datatypes
 from canopen.sdo.exceptions import SdoAbortedError, SdoError
 
 from northfinder.codecs.canopen import (
     UNIT_SCALE,
+    AccelBlock,
     AccelFrameDecoder,
     AccelStats,
     CanCodec,
     Emcy,
     MappedObject,
     PdoLayout,
-    RawAccelSamples,
     TpdoLayout,
+    decode_accel_frames,
     object_role,
+    samples_to_block,
 )
+from northfinder.drivers._stream import wait_until
 from northfinder.errors import DeviceError
 
 __all__ = ["DEFAULT_EDS_PATH", "Accelerometer", "AccelBlock", "AccelStats", "Emcy", "decode_can_log",
@@ -85,54 +87,14 @@ ABORT_MEANINGS = {
 DEVICE = "accelerometer"
 
 
-@dataclass(frozen=True)
-class AccelBlock:
-    """Consecutive paired samples. `lost_samples` counts gaps inside the block."""
-
-    counter: np.ndarray  # int64 [n], unwrapped device counter
-    accel_g: np.ndarray  # float64 [n, 3]
-    temperature_c: np.ndarray  # float64 [n]
-    status: np.ndarray  # uint8 [n]
-    lost_samples: int
-
-    def __len__(self) -> int:
-        return len(self.counter)
-
-
-def _divisor(scale: float) -> float:
-    """1e-6 → 1e6: dividing by the exact integer rounds µg → g correctly."""
-    inv = 1.0 / scale
-    return float(round(inv)) if abs(inv - round(inv)) < 1e-9 * inv else inv
-
-
-def samples_to_block(raw: RawAccelSamples, layout: PdoLayout) -> AccelBlock:
-    """Raw samples → an AccelBlock in g and °C, each axis scaled by its mapped object's EDS unit."""
-    counter = np.asarray(raw.counter, dtype=np.int64)
-    lost = int(counter[-1] - counter[0] + 1 - len(counter)) if len(counter) else 0
-    accel = np.empty(raw.accel_raw.shape, dtype=np.float64)
-    for j, role in enumerate("xyz"):
-        accel[:, j] = raw.accel_raw[:, j].astype(np.float64) / _divisor(layout.find(role).scale)
-    temp_obj = layout.find("temperature")
-    temperature = (raw.temperature_raw.astype(np.float64) / _divisor(temp_obj.scale) if temp_obj is not None
-                   else np.full(len(counter), np.nan))
-    return AccelBlock(counter=counter, accel_g=accel, temperature_c=temperature,
-                      status=raw.status.astype(np.uint8), lost_samples=lost)
-
-
 def decode_can_log(path: str | Path, node_id: int = 0x10, dbc_path: str | Path | None = None,
                    layout: PdoLayout | dict | None = None) -> tuple[AccelBlock, AccelStats]:
-    """Decode a python-can log (.asc, .blf, …) of the node's traffic (replay); `layout` is the
+    """Decode a python-can log (.asc, .blf, …) of the node's traffic (replay): python-can reads the
+    file, :func:`northfinder.codecs.canopen.decode_accel_frames` decodes it; `layout` is the
     mapping the run read from the node (its events' `accel_config`), default the reference one."""
-    codec = CanCodec(node_id, dbc_path)
-    if isinstance(layout, dict):
-        layout = PdoLayout.from_dict(layout)
-    decoder = AccelFrameDecoder(codec, layout)
-    for msg in can.LogReader(str(path)):
-        if msg.is_error_frame or not msg.is_rx:
-            continue
-        decoder.feed(msg.arbitration_id, bytes(msg.data), msg.timestamp, msg.is_extended_id,
-                     msg.is_remote_frame)
-    return samples_to_block(decoder.drain(), decoder.layout), decoder.stats
+    frames = ((m.arbitration_id, bytes(m.data), m.timestamp, m.is_extended_id, m.is_remote_frame)
+              for m in can.LogReader(str(path)) if m.is_rx and not m.is_error_frame)
+    return decode_accel_frames(frames, node_id, dbc_path, layout)
 
 
 def layout_from_node(node: canopen.RemoteNode) -> PdoLayout:
@@ -460,15 +422,15 @@ class Accelerometer:
         self, ready: Callable[[], bool], timeout_s: float, timeout_message: Callable[[], str]
     ) -> None:
         """With the lock held: wait until `ready()`; DeviceError on a bus error or after `timeout_s`
-        (the message from `timeout_message()`)."""
-        deadline = time.monotonic() + timeout_s
-        while not ready():
-            if self._error is not None:
-                raise DeviceError(DEVICE, self.port, f"bus error on {self.port}: {self._error}")
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise DeviceError(DEVICE, self.port, timeout_message())
-            self._lock.wait(remaining)
+        (the message from `timeout_message()`). The byte streams' wait (drivers._stream)."""
+
+        def bus_error() -> DeviceError | None:
+            if self._error is None:
+                return None
+            return DeviceError(DEVICE, self.port, f"bus error on {self.port}: {self._error}")
+
+        wait_until(self._lock, ready, timeout_s, bus_error,
+                   lambda: DeviceError(DEVICE, self.port, timeout_message()))
 
     def wait_heartbeat_state(self, state: int, timeout_s: float = 3.0) -> int:
         """Wait until a heartbeat reports `state` (e.g. 0x05 after :meth:`start_node`)."""

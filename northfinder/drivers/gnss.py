@@ -22,7 +22,6 @@ Example::
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -79,15 +78,12 @@ class Gnss(StreamReader):
         wait_for_data: bool = True,
         transport: _ByteTransport | None = None,
     ) -> None:
-        self.port = port
-        self.timeout_s = float(timeout_s)
+        super().__init__(port, timeout_s)
         self._t = transport if transport is not None else SerialTransport(
             port, device=DEVICE, baudrate=baudrate, timeout_s=0.05, raw_log=raw_log
         )
         self._decoder = NmeaDecoder()
-        self._cond = threading.Condition()
         self._pending: list[GnssFix] = []
-        self._error: BaseException | None = None
         self._start_reader()
         if wait_for_data:
             try:

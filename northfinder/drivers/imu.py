@@ -8,8 +8,8 @@ sample index. :meth:`Imu.read` blocks until the next n samples are there. Gyro f
 rad/s whatever the device's ``ROTFMT`` (delta angle or rate) and ``ROTUNITS`` (rad or deg);
 ``time_s = sample_index / rate_hz`` is device time.
 
-:func:`decode_imu_stream` is the pure replay path: the same decoder and conversion, so a raw log
-replays to bit-identical arrays.
+:func:`northfinder.codecs.kvh.decode_imu_stream` (re-exported here) is the pure replay path: the
+same decoder and conversion, so a raw log replays to bit-identical arrays.
 
 Example::
 
@@ -24,16 +24,15 @@ Example::
 from __future__ import annotations
 
 import contextlib
-import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import BinaryIO, Protocol
 
 import numpy as np
 
 from northfinder.codecs import kvh
-from northfinder.codecs.kvh import ImuStats, KvhDecoder
+from northfinder.codecs.kvh import ImuBlock, ImuStats, KvhDecoder, decode_imu_stream, frames_to_block
 from northfinder.drivers._stream import StreamReader
 from northfinder.errors import ConfigError, DeviceError
 from northfinder.transport import SerialTransport
@@ -42,62 +41,6 @@ __all__ = ["Imu", "ImuBlock", "ImuStats", "decode_imu_stream", "frames_to_block"
 
 DEVICE = "imu"
 INVALID_AFTER_RATE_CHANGE = 2  # PROTOCOLS.md §2: the next 2 messages after =DR are not valid data
-
-
-@dataclass(frozen=True)
-class ImuBlock:
-    """Consecutive decoded samples. `lost_samples` counts gaps inside the block.
-
-    A field whose status bit is cleared (PROTOCOLS.md §2: not valid, or an axis the unit does not
-    have) is NaN in `gyro_rad_s` / `accel_g`, so it is excluded from every mean, never averaged."""
-
-    sample_index: np.ndarray  # int64 [n], device sample count
-    gyro_rad_s: np.ndarray  # float64 [n, 3], NaN where not valid
-    accel_g: np.ndarray  # float64 [n, 3], NaN where not valid
-    status: np.ndarray  # uint8 [n]
-    temperature_c: np.ndarray  # float64 [n]
-    lost_samples: int
-    rate_hz: float
-
-    @property
-    def valid(self) -> np.ndarray:
-        """bool [n, 6]: each axis's valid bit (gyro x y z, accel x y z)."""
-        return kvh.valid_mask(self.status)
-
-    @property
-    def time_s(self) -> np.ndarray:
-        """Device time of each sample: sample_index / rate_hz."""
-        return self.sample_index / self.rate_hz
-
-    def __len__(self) -> int:
-        return len(self.sample_index)
-
-
-def frames_to_block(sample_index: np.ndarray, frames: np.ndarray, rate_hz: float, rot_format: str,
-                    rot_units: str) -> ImuBlock:
-    """Decoded format-A frames → an ImuBlock in rad/s and g (live and replay use this one)."""
-    scale = kvh.gyro_scale_to_rad_s(rate_hz, rot_format, rot_units)
-    index = np.asarray(sample_index, dtype=np.int64)
-    lost = int(index[-1] - index[0] + 1 - len(index)) if len(index) else 0
-    valid = kvh.valid_mask(frames["status"])
-    return ImuBlock(
-        sample_index=index,
-        gyro_rad_s=np.where(valid[:, :3], frames["gyro"].astype(np.float64) * scale, np.nan),
-        accel_g=np.where(valid[:, 3:], frames["accel"].astype(np.float64), np.nan),
-        status=frames["status"].astype(np.uint8),
-        temperature_c=frames["temperature"].astype(np.float64),
-        lost_samples=lost,
-        rate_hz=float(rate_hz),
-    )
-
-
-def decode_imu_stream(raw: bytes, rate_hz: float = 1000.0, rot_format: str = "DELTA",
-                      rot_units: str = "RAD") -> tuple[ImuBlock, ImuStats]:
-    """Decode a whole raw IMU log (replay): every good frame (fields flagged not valid are NaN,
-    as live), and the stream's counters."""
-    decoder = KvhDecoder()
-    out = decoder.feed(raw)
-    return frames_to_block(out.sample_index, out.frames, rate_hz, rot_format, rot_units), decoder.stats
 
 
 class _ByteTransport(Protocol):  # what the driver needs from SerialTransport (tests pass their own)
@@ -131,8 +74,7 @@ class Imu(StreamReader):
         counts as paused (see :attr:`stall_indices`). Generous on purpose: a USB-serial adapter may
         hold bytes back for a few hundred ms and then burst them, which loses nothing (the
         sequence counter decides that); only a silence this long can hide 128·k lost samples."""
-        self.port = port
-        self.timeout_s = float(timeout_s)
+        super().__init__(port, timeout_s)
         self.rate_hz = float(rate_hz)
         self.rot_format = rot_format.upper()
         self.rot_units = rot_units.upper()
@@ -158,13 +100,11 @@ class Imu(StreamReader):
                 self._raw_log.close()
             raise
         self._decoder = KvhDecoder()
-        self._cond = threading.Condition()
         self._pending: list[tuple[np.ndarray, np.ndarray]] = []
         self._pending_n = 0
         self._config_mode = False
         self._text = bytearray()
         self._discard_next = 0
-        self._error: BaseException | None = None
         self._start_reader()
         if wait_for_data:
             try:

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from northfinder.campaign_stats import ARCMIN_PER_DEG
+from northfinder.estimators.campaign_stats import ARCMIN_PER_DEG
 
 SHORT = {
     "exact": "exact",

@@ -1,7 +1,7 @@
 """A repeatability campaign: N finds in a row at each of one or more base headings (steps).
 
-Each find is a complete run directory `stepK-runNN` under the campaign directory, made by
-`northfinder find` itself (`run_find`, the one coupling to the find). campaign.json is the
+Each find is a complete run directory `stepK-runNN` under the campaign directory, made by the
+find run itself (northfinder.runs.find.run_find, the one coupling to the find). campaign.json is the
 campaign's state: written atomically at the start and after every find, it lists the finds done,
 so `--resume` runs exactly the missing ones — none repeated, none lost. A find that was stopped or
 failed is moved aside (`stepK-runNN.failed-A`) and measured again; a find that finished but was not
@@ -10,8 +10,6 @@ yet listed (killed between the two writes) is adopted as it is.
 
 from __future__ import annotations
 
-import argparse
-import contextlib
 import json
 import os
 from collections.abc import Callable
@@ -19,8 +17,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from northfinder.campaign_stats import deviation_deg, method_statistics, step_statistics
 from northfinder.errors import InputError, NorthfinderError, RunAborted
+from northfinder.estimators.campaign_stats import deviation_deg, method_statistics, step_statistics
+from northfinder.history import record_or_warn
+from northfinder.runs.find import FindRequest, run_find
 
 CAMPAIGN_JSON = "campaign.json"
 SCHEMA = "northfinder.campaign/1"
@@ -28,7 +28,8 @@ SEED_STRIDE = 1000
 """A simulated find's seed is seed + index + SEED_STRIDE·attempt: every find (and every retry of a
 stopped one) draws its own sensor noise, and the same campaign plan draws the same noise again."""
 
-FindRunner = Callable[[list[str], Path], None]
+FindRunner = Callable[[FindRequest, Path], None]
+"""Runs one find (northfinder.runs.find.run_find) and writes its summary to the given path."""
 
 
 def run_name(step: int, repeat: int) -> str:
@@ -83,42 +84,30 @@ def new_state(plan: dict[str, Any], unit: str, simulate: dict[str, Any] | None) 
     }
 
 
-def find_argv(state: dict[str, Any], index: int, step: int, attempt: int, out: Path) -> list[str]:
-    """`northfinder find` flags for one find of the campaign."""
+def find_request(state: dict[str, Any], index: int, step: int, attempt: int, out: Path) -> FindRequest:
+    """The find request (the `northfinder find` flags) for one find of the campaign."""
     plan, sim = state["plan"], state["simulate"]
-    argv = ["--out", str(out), "--method", plan["method"]]
-    for flag, key in (("--positions", "positions"), ("--dwell", "dwell_s")):
-        if plan.get(key) is not None:
-            argv += [flag, repr(plan[key])]
-    if state.get("unit"):
-        argv += ["--unit", state["unit"]]
-    if not plan.get("report", True):
-        argv.append("--no-report")
+    req = FindRequest(out=str(out), method=plan["method"], positions=plan.get("positions"),
+                      dwell=plan.get("dwell_s"), unit=state.get("unit") or None,
+                      no_report=not plan.get("report", True))
     if sim is None:
-        argv += ["--config", plan["config"]]
-        return argv
-    argv += ["--simulate", "--heading", repr(float(plan["steps"][step]["reference_deg"]))]
-    argv += ["--seed", str(int(sim["seed"]) + index + SEED_STRIDE * attempt)]
-    argv += ["--grade", sim["grade"], "--time-scale", repr(float(sim["time_scale"]))]
-    for flag, key in (("--pitch", "pitch_deg"), ("--roll", "roll_deg"), ("--latitude", "latitude_deg")):
+        req.config = plan["config"]
+        return req
+    req.simulate = True
+    req.heading = float(plan["steps"][step]["reference_deg"])
+    req.seed = int(sim["seed"]) + index + SEED_STRIDE * attempt
+    req.grade, req.time_scale = sim["grade"], float(sim["time_scale"])
+    for name, key in (("pitch", "pitch_deg"), ("roll", "roll_deg"), ("latitude", "latitude_deg")):
         if sim.get(key) is not None:
-            argv += [flag, repr(float(sim[key]))]
-    if sim.get("sim_config"):
-        argv += ["--sim-config", sim["sim_config"]]
-    return argv
+            setattr(req, name, float(sim[key]))
+    req.sim_config = sim.get("sim_config") or None
+    return req
 
 
-def run_find(argv: list[str], summary_path: Path) -> None:
-    """One turntable find exactly as `northfinder find ARGV` makes it (its own parser and run
-    function); its printed summary goes to `summary_path`. Raises what the find raises."""
-    from northfinder.cli import find as find_cli  # the campaign's one coupling to the find
-
-    parser = argparse.ArgumentParser(prog="northfinder")
-    find_cli.register(parser.add_subparsers())
-    args = parser.parse_args(["find", *argv])
-    summary_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(summary_path, "w", encoding="utf-8") as fh, contextlib.redirect_stdout(fh):
-        args.func(args)
+def run_quietly(req: FindRequest, summary_path: Path) -> None:
+    """One find with no view (the CLI passes its own runner that shows the progress and writes the
+    summary to `summary_path`). Raises what the find raises."""
+    run_find(req)
 
 
 def run_entry(run_dir: Path, cdir: Path, index: int, step: int, repeat: int, reference_deg: float):
@@ -177,7 +166,7 @@ def run_campaign(
     cdir: Path,
     state: dict[str, Any],
     *,
-    runner: FindRunner = run_find,
+    runner: FindRunner = run_quietly,
     prompt: Callable[[int, float], None] | None = None,
     echo: Callable[[str], None] = print,
 ) -> dict[str, Any]:
@@ -207,9 +196,8 @@ def run_campaign(
                 if prompt is not None and step != last_step:
                     prompt(step, reference)
                 last_step = step
-                runner(
-                    find_argv(state, index, step, attempts.get(index, 0), run_dir), run_dir / "summary.txt"
-                )
+                req = find_request(state, index, step, attempts.get(index, 0), run_dir)
+                runner(req, run_dir / "summary.txt")
             except (NorthfinderError, KeyboardInterrupt) as exc:
                 why = "stopped by Ctrl-C" if isinstance(exc, KeyboardInterrupt) else str(exc)
                 if run_dir.exists():  # kept for replay; the find is measured again on --resume
@@ -232,6 +220,7 @@ def run_campaign(
     state["finished_utc"] = now_utc()
     update_statistics(state)
     write_state(cdir, state)
+    record_or_warn(cdir, unit=state.get("unit") or None)  # the campaign's row in the results history
     return state
 
 

@@ -1,0 +1,389 @@
+"""The shared base of every kind of run: a run context and the guard around opening a device.
+
+A run context holds what every function of a run used to pass around by hand: the configuration,
+the run directory, the truth of a simulated run and the outputs (an extra result JSON, whether to
+draw report.png), plus the two hooks through which a view watches the run — `progress` (a live
+view, entered around the measurement) and `on_event` (every event the run logs). The run never
+knows its view: the CLI hands it the hooks and prints the summary itself.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import signal
+import sys
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from northfinder.errors import DeviceError, InputError, RunAborted
+from northfinder.rundir import CONFIG, EVENTS, IMU_RAW, RESULT, RunDir
+from northfinder.stopflag import StopFlag
+
+ProgressView = Callable[[int, float], Any]
+"""A progress view factory: called with (positions, dwell_s), returns a context manager whose
+`__enter__` gives a callable that takes each `northfinder.sequencer.Progress`."""
+
+
+@dataclass
+class RunContext:
+    """One run: configuration, run directory, truth, outputs, and the view's hooks."""
+
+    cfg: Any
+    rundir: RunDir
+    truth: dict[str, float] | None = None
+    json_path: str | None = None
+    report: bool = True
+    progress: ProgressView | None = None
+    on_event: Callable[[dict[str, Any]], None] | None = None
+
+    def start(self, config: dict[str, Any]) -> None:
+        """Write config.json (the first session only: a resumed run keeps its saved config)."""
+        if self.rundir.session == 1:
+            self.rundir.write_json(CONFIG, config)
+
+    def event(self, event: dict[str, Any]) -> None:
+        """Log one event to events.jsonl and show it to the view's event hook."""
+        self.rundir.log_event(event)
+        if self.on_event is not None:
+            self.on_event(event)
+
+    def view(self, positions: int, dwell_s: float) -> contextlib.AbstractContextManager[Any]:
+        """The live progress view (or a silent one if the run has none)."""
+        if self.progress is None:
+            return contextlib.nullcontext(lambda _p: None)
+        return self.progress(positions, dwell_s)
+
+    def finish(self, result: dict[str, Any]) -> None:
+        """Save the result: result.json, the extra JSON if asked, report.png if asked."""
+        self.rundir.write_json(RESULT, result)
+        if self.json_path:
+            RunDir(Path(self.json_path).parent).write_json(Path(self.json_path).name, result)
+        if self.report:
+            from northfinder.report import write_report  # matplotlib: only when drawing
+
+            write_report(result, self.rundir.report_path)
+
+    def abort(self, positions_measured: int) -> None:
+        """The end event of a run that did not complete."""
+        self.event({"event": "end", "complete": False, "positions_measured": positions_measured})
+
+
+@contextlib.contextmanager
+def guard(device: str, port: str, factory: Callable[[], Any]) -> Iterator[Any]:
+    """Enter a driver; a low-level OS/serial/CAN failure becomes one DeviceError line naming the port."""
+    import can
+
+    try:
+        obj = factory()
+        entered = obj.__enter__()
+    except (OSError, can.CanError) as exc:  # serial.SerialException is an OSError
+        raise DeviceError(device, port, f"cannot open it ({exc}); check the port in bench.toml") from None
+    try:
+        yield entered
+    finally:
+        obj.__exit__(*sys.exc_info())
+
+
+# ---------------------------------------------------------------------------------------------
+# The align runs' plumbing (northfinder.runs.swaying, gnss, gnss_live): the IMU window read in
+# device time, start/end events, the result save, the Ctrl-C/SIGTERM ending, replay's event lookup
+# and window decode, firmware-sim's truth log. Devices open through `guard` above.
+# ---------------------------------------------------------------------------------------------
+class WindowView(Protocol):
+    """What an align run shows while reading: `show(device seconds read, the mode's counters)`."""
+
+    def show(self, done_s: float, info: str) -> None: ...
+
+
+WindowProgress = Callable[[float], contextlib.AbstractContextManager[WindowView]]
+"""A progress view factory for an align run: called with the window's device seconds, a context
+manager giving a WindowView (the CLI hands `northfinder.cli._common.DeviceTimeProgress`)."""
+
+
+class _SilentView:
+    def show(self, done_s: float, info: str) -> None:
+        """No view: the run reads without drawing."""
+
+
+def window_view(progress: WindowProgress | None, duration_s: float) -> contextlib.AbstractContextManager[Any]:
+    """The run's progress view, or a silent one if the CLI handed none."""
+    return progress(duration_s) if progress is not None else contextlib.nullcontext(_SilentView())
+
+
+def now_utc() -> str:
+    """The host UTC time for the events' `utc` (a label, never a decision)."""
+    return datetime.now(UTC).isoformat()
+
+
+# ---------------------------------------------------------------------------------------------
+# IMU blocks
+# ---------------------------------------------------------------------------------------------
+def select_samples(block: Any, first_index: int, last_index: int) -> Any:
+    """The samples of an ImuBlock with first_index ≤ index ≤ last_index (what the live run read)."""
+    from northfinder.drivers.imu import ImuBlock
+
+    sel = (block.sample_index >= first_index) & (block.sample_index <= last_index)
+    idx = block.sample_index[sel]
+    lost = int(idx[-1] - idx[0] + 1 - len(idx)) if len(idx) else 0
+    return ImuBlock(
+        idx,
+        block.gyro_rad_s[sel],
+        block.accel_g[sel],
+        block.status[sel],
+        block.temperature_c[sel],
+        lost,
+        block.rate_hz,
+    )
+
+
+def concat_blocks(blocks: list[Any], rate_hz: float) -> Any:
+    """One ImuBlock of the window from the blocks read (gaps stay gaps in sample_index)."""
+    from northfinder.drivers.imu import ImuBlock
+
+    return ImuBlock(
+        np.concatenate([b.sample_index for b in blocks]),
+        np.concatenate([b.gyro_rad_s for b in blocks]),
+        np.concatenate([b.accel_g for b in blocks]),
+        np.concatenate([b.status for b in blocks]),
+        np.concatenate([b.temperature_c for b in blocks]),
+        0,
+        rate_hz,
+    )
+
+
+def read_imu_window(
+    imu: Any, duration_s: float, stop: StopFlag, blocks: list[Any], check: Callable[[Any], None] | None = None
+) -> Iterator[float]:
+    """Read `duration_s` device seconds (samples + lost samples over the rate) into `blocks`,
+    1 s of device time per read (few wakeups at a large time scale); yields the device seconds
+    read so far after each read, so the caller can poll other ports and draw progress. Ends early
+    when `stop` is raised. `check(block)` may refuse a block (it raises) before it is kept."""
+    rate = imu.rate_hz
+    n_total = int(round(duration_s * rate))
+    chunk = max(1, int(rate))
+    first = last = None
+    while not stop:
+        need = n_total if first is None else n_total - (last - first + 1)
+        if need <= 0:
+            break
+        block = imu.read(min(chunk, need), timeout_s=5.0 + chunk / rate)
+        if check is not None:
+            check(block)
+        if first is None:
+            first = int(block.sample_index[0])
+        if int(block.sample_index[-1]) - first + 1 > n_total:  # a gap overshot the window
+            block = select_samples(block, first, first + n_total - 1)
+        if len(block):
+            blocks.append(block)
+            last = int(block.sample_index[-1])
+        yield (last - first + 1) / rate if last is not None else 0.0
+
+
+def imu_start(port: str, imu: Any) -> dict[str, Any]:
+    """The start event's `imu`: what the decoder must know to replay imu.raw."""
+    return {"port": port, "rate_hz": imu.rate_hz, "rot_format": imu.rot_format, "rot_units": imu.rot_units}
+
+
+def start_event(kind: str, duration_s: float, imu_port: str, imu: Any, **more: Any) -> dict[str, Any]:
+    return {
+        "event": "start",
+        "kind": kind,
+        "utc": now_utc(),
+        "duration_s": duration_s,
+        "imu": imu_start(imu_port, imu),
+        **more,
+    }
+
+
+def imu_end(block: Any, stats: dict[str, Any]) -> dict[str, Any]:
+    """The end event's `imu`: the window's index range (replay cuts imu.raw by it) and counters."""
+    return {
+        "first_index": int(block.sample_index[0]),
+        "last_index": int(block.sample_index[-1]),
+        "samples": len(block),
+        "lost_samples": int(block.sample_index[-1] - block.sample_index[0] + 1 - len(block)),
+        "stats": stats,
+    }
+
+
+def abort_or(stop: StopFlag, rd: RunDir, what: str) -> Exception:
+    """InputError(what) for a run that was not stopped; RunAborted (130, 143 for SIGTERM) naming
+    the signal and the run directory to replay otherwise."""
+    if not stop:
+        return InputError(what)
+    err = RunAborted(
+        f"run stopped by {signal.Signals(stop.signum).name}; {what}; the data is saved in "
+        f"{rd.path} (northfinder replay {rd.path})"
+    )
+    if stop.signum == signal.SIGTERM:
+        err.exit_code = 143
+    return err
+
+
+def write_result(rd: RunDir, result: dict[str, Any], json_path: str | None) -> None:
+    """result.json in the run directory, and a copy at --json PATH if given."""
+    rd.write_json(RESULT, result)
+    if json_path:
+        RunDir(Path(json_path).parent).write_json(Path(json_path).name, result)
+
+
+def finish_window(
+    rd: RunDir,
+    stop: StopFlag,
+    compute: Callable[[bool], tuple[dict[str, Any], Any]],
+    save: Callable[[dict[str, Any], Any], None],
+) -> dict[str, Any]:
+    """Align on the window (`compute(complete)`, the function replay uses) and `save` the result.
+    A window cut short by a signal is aligned if it can be, then RunAborted (exit 130/143)."""
+    complete = not stop
+    try:
+        result, extra = compute(complete)
+    except InputError as exc:
+        if complete:
+            raise
+        raise abort_or(stop, rd, str(exc)) from None
+    save(result, extra)
+    if not complete:
+        raise abort_or(stop, rd, f"the result of the {result['duration_device_s']:.1f} s read is saved")
+    return result
+
+
+# ---------------------------------------------------------------------------------------------
+# Replay
+# ---------------------------------------------------------------------------------------------
+def run_events(rd: RunDir, kind: str, mode: str) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """The run's start event (InputError if it is not a run of `kind`) and its end event (None if
+    the run was killed before it saved its window)."""
+    events = rd.events()
+    start = next((e for e in events if e.get("event") == "start"), None)
+    if start is None or start.get("kind") != kind:
+        raise InputError(
+            f"{rd.path}: not an `align --mode {mode}` run ({EVENTS} has no start event of kind {kind})"
+        )
+    end = next((e for e in events if e.get("event") == "end"), None)
+    return start, end
+
+
+def imu_window_from_raw(rd: RunDir, start: dict[str, Any], end: dict[str, Any]) -> Any:
+    """The window's IMU samples decoded from imu.raw alone (the pure decoder: bit-identical)."""
+    from northfinder.drivers.imu import decode_imu_stream
+
+    imu_cfg = start["imu"]
+    raw = rd.file(IMU_RAW).read_bytes() if rd.file(IMU_RAW).exists() else b""
+    block, _ = decode_imu_stream(raw, imu_cfg["rate_hz"], imu_cfg["rot_format"], imu_cfg["rot_units"])
+    return select_samples(block, int(end["imu"]["first_index"]), int(end["imu"]["last_index"]))
+
+
+# ---------------------------------------------------------------------------------------------
+# The simulator's truth log (JSON lines, docs/simulator.md)
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class TruthLog:
+    """What northfinder needs from firmware-sim's truth log: the header, this client's
+    `imu_connect` anchor (absolute sample k0, sequence0, t0_device_s, rate_hz), and truth against
+    device time (heading unwrapped)."""
+
+    header: dict[str, Any]
+    connect: dict[str, Any] | None
+    grid_events: int
+    """imu_grid events after the connect (a rate change or configuration mode moved the k ↔ time map)."""
+    t_s: np.ndarray
+    heading_deg: np.ndarray  # unwrapped
+    pitch_deg: np.ndarray
+    roll_deg: np.ndarray
+    pos_enu_m: np.ndarray  # of the IMU, about `origin`
+
+    @property
+    def imu_k0(self) -> int | None:
+        """Absolute sample number k (1, 2, … since power-on) of the first frame this client received."""
+        return int(self.connect["k0"]) if self.connect is not None else None
+
+    @property
+    def imu_rate_hz(self) -> float | None:
+        rate = (self.header.get("imu") or {}).get("rate_hz")
+        return float(rate) if rate is not None else None
+
+    @property
+    def imu_t0_s(self) -> float | None:
+        """Device time at which the first received sample's interval starts: sample k covers
+        [(k − 1)/rate, k/rate] (docs/simulator.md)."""
+        if self.imu_k0 is None or not self.imu_rate_hz:
+            return None
+        return (self.imu_k0 - 1) / self.imu_rate_hz
+
+    @property
+    def lever_arm_m(self) -> list[float] | None:
+        """The GNSS antenna's lever arm (vehicle scenario)."""
+        la = (self.header.get("gnss") or {}).get("lever_arm_b_m")
+        return [float(v) for v in la] if la is not None else None
+
+    @property
+    def origin(self) -> tuple[float, float, float] | None:
+        o = self.header.get("enu_origin")
+        return (float(o["latitude_deg"]), float(o["longitude_deg"]), float(o["height_m"])) if o else None
+
+    def at(self, t_s: float | np.ndarray, what: str) -> np.ndarray:
+        """Linear interpolation of a truth column at device time(s)."""
+        col = getattr(self, what)
+        t = np.asarray(t_s, dtype=float)
+        if col.ndim == 1:
+            return np.interp(t, self.t_s, col)
+        return np.stack([np.interp(t, self.t_s, col[:, j]) for j in range(col.shape[1])], axis=-1)
+
+    def heading_at(self, t_s: float | np.ndarray) -> np.ndarray:
+        return np.mod(self.at(t_s, "heading_deg"), 360.0)
+
+
+def read_truth_log(path: Path) -> TruthLog:
+    """Parse firmware-sim's truth log (JSON lines: a header, `truth` rows, `event`s); a torn last
+    line is ignored. InputError naming the file if it is missing or has no truth rows."""
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise InputError(f"{path}: the simulator's truth log is missing") from None
+    header: dict[str, Any] = {}
+    connect = None
+    grid = 0
+    rows: list[tuple] = []
+    for line in lines:
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        kind = rec.get("type") if isinstance(rec, dict) else None
+        if kind == "truth":
+            pos = rec.get("imu_pos_enu_m", [math.nan] * 3)
+            rows.append((rec["t_device_s"], rec["heading_deg"], rec["pitch_deg"], rec["roll_deg"], pos))
+        elif kind == "header" and not header:
+            header = rec
+        elif kind == "event" and rec.get("event") == "imu_connect" and connect is None:
+            connect = rec
+        elif kind == "event" and rec.get("event") == "imu_grid" and connect is not None:
+            grid += 1
+    if not rows:
+        raise InputError(f"{path}: the truth log has no truth rows")
+    rows.sort(key=lambda r: r[0])
+    return TruthLog(
+        header=header,
+        connect=connect,
+        grid_events=grid,
+        t_s=np.array([r[0] for r in rows], dtype=float),
+        heading_deg=np.rad2deg(np.unwrap(np.deg2rad([r[1] for r in rows]))),
+        pitch_deg=np.array([r[2] for r in rows], dtype=float),
+        roll_deg=np.array([r[3] for r in rows], dtype=float),
+        pos_enu_m=np.array([r[4] for r in rows], dtype=float).reshape(-1, 3),
+    )
+
+
+def grid_moved(rd: RunDir) -> InputError:
+    return InputError(
+        f"{rd.path}: the simulated IMU's sample grid moved after this client connected "
+        "(imu_grid event in the truth log); its samples no longer map to device time"
+    )
