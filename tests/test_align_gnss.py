@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 from helpers import northfinder_line, only_line, read_events, sigint_when, start_cli
 
-from northfinder.align import gnss_run as gr
 from northfinder.cli import main
 from northfinder.cli.replay import differences
 from northfinder.rundir import EVENTS, RESULT
+from northfinder.runs import gnss as gr
 
 TIME_SCALE = 25.0
 """firmware-sim's vehicle kept up with 25× real time on this shared 2-core host (60 device s in 2.45 s
@@ -284,8 +284,8 @@ def test_hardware_path_on_a_moving_vehicle_refuses_with_one_line(tmp_path, capsy
     """`--config` (the real-hardware path: IMU configuration read back, host receive stamps) against
     firmware-sim's vehicle once it is driving: levelling needs a still start, so one line says so.
     The host-stamp time alignment of that run is computed and finite."""
-    from northfinder.align.gnss_run_live import VehicleSim, VehicleSimProcess
     from northfinder.rundir import RunDir
+    from northfinder.runs.gnss_live import VehicleSim, VehicleSimProcess
 
     truth_log = tmp_path / "truth.jsonl"
     with VehicleSimProcess(VehicleSim(time_scale=TIME_SCALE, truth_log=str(truth_log))) as endpoints:

@@ -19,10 +19,10 @@ from pathlib import Path
 import pytest
 from helpers import northfinder_line, read_events, run_cli, sigint_when, start_cli, start_sim
 
-from northfinder.align import swaying_run as sr
 from northfinder.cli import main
 from northfinder.cli.replay import differences
 from northfinder.rundir import CONFIG, RESULT
+from northfinder.runs import swaying as sr
 
 TIME_SCALE = 40.0
 """The ship's 1000 Hz stream read by the Imu driver lost nothing at 30× and 50× on this shared 2-core

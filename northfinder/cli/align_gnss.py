@@ -16,12 +16,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from northfinder.align import gnss_run as gr
-from northfinder.align import gnss_run_live as live
-from northfinder.align import runs
+from northfinder.cli import _common
 from northfinder.errors import InputError
 from northfinder.history import record_or_warn
 from northfinder.rundir import RunDir
+from northfinder.runs import gnss as gr
+from northfinder.runs import gnss_live as live
 
 MIN_DURATION_S = 10.0
 """5 s still for levelling (GnssAlignConfig.level_s) and some driving after it."""
@@ -30,7 +30,7 @@ UNKNOWN_LEVER_ARM_STD_M = 1.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The gnss mode's own flags on the `align` parser."""
-    runs.add_flag(
+    _common.add_flag(
         parser,
         "--heading-error",
         type=float,
@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="gnss, simulated: the heading prior is the truth heading at the start + DEG (its σ: "
         "--heading-std; default unknown)",
     )
-    runs.add_flag(
+    _common.add_flag(
         parser,
         "--heading-std",
         default=None,
@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="gnss: 1σ of the heading prior (--heading DEG, or simulated truth + --heading-error); "
         "'unknown' (default) starts from that heading but lets the first turn decide",
     )
-    runs.add_flag(
+    _common.add_flag(
         parser,
         "--lever-arm",
         default=None,
@@ -55,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="gnss: antenna position in IMU axes [m] (simulated: the truth given to firmware-sim; "
         "hardware: the tape-measured prior, overrides [gnss] lever_arm_m)",
     )
-    runs.add_flag(
+    _common.add_flag(
         parser,
         "--initial-heading",
         type=float,
@@ -63,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DEG",
         help="gnss, hardware: the same as --heading (kept for older scripts)",
     )
-    runs.add_flag(
+    _common.add_flag(
         parser,
         "--heading",
         type=float,
@@ -71,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DEG",
         help="simulated: the true heading; gnss on hardware: the heading prior (σ: --heading-std)",
     )
-    runs.add_flag(
+    _common.add_flag(
         parser, "--latitude", type=float, default=None, metavar="DEG", help="simulated site latitude"
     )
 
@@ -157,7 +157,7 @@ def heading_prior(args: argparse.Namespace) -> tuple[float | None, float | None]
 
 
 def default_out() -> Path:
-    return runs.default_out(gr.KIND)
+    return _common.default_out(gr.KIND)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -195,6 +195,7 @@ def run(args: argparse.Namespace) -> int:
                 rot_format=str(endpoints.get("imu_rot_format", "DELTA")),
                 rot_units="RAD",
                 duration_s=duration,
+                progress=_common.DeviceTimeProgress,
                 filter_settings=settings,
                 simulate=sim.to_dict(),
                 gnss_start_utc=str(endpoints.get("gnss_start_utc")),
@@ -223,6 +224,7 @@ def run(args: argparse.Namespace) -> int:
             rot_format=bench.imu.rot_format,
             rot_units=bench.imu.rot_units,
             duration_s=duration,
+            progress=_common.DeviceTimeProgress,
             filter_settings=settings,
             imu_baudrate=bench.imu.baudrate,
             gnss_baudrate=g.baudrate,
@@ -259,8 +261,8 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
     """The rich summary: heading ± σ, convergence, lever arm, both filters, truth and errors, counters."""
     from rich.table import Table
 
-    console = runs.summary_console(console, 132)
-    head = runs.summary_head("northfinder align --mode gnss", result)
+    console = _common.summary_console(console, 132)
+    head = _common.summary_head("northfinder align --mode gnss", result)
     head.add_row("start", start_text(result))
     head.add_row("converged after", f"{_f(result['converged_after_s'], '.1f')} s (1σ < 1° from then on)")
     la, las = result["lever_arm_m"], result["lever_arm_std_m"]
@@ -281,7 +283,7 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
     head.add_row("time alignment", f"{ta['method']}{extra}")
     if "truth" in result:
         tr = result["truth"]
-        runs.add_error_rows(
+        _common.add_error_rows(
             head, result, f"heading {tr['heading_deg']:.4f}° (at the start {tr['heading_at_start_deg']:.4f}°)"
         )
         head.add_row(
@@ -289,7 +291,7 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
             f"{_f(result.get('position_error_m'), '.2f')} m; lever arm off by "
             f"{_f(result.get('lever_arm_error_m'), '.3f')} m",
         )
-    runs.print_head(console, head, result)
+    _common.print_head(console, head, result)
     t = Table(title="both filters on the same data (* = the result)")
     for col in (
         "filter",

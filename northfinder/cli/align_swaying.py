@@ -18,17 +18,17 @@ import time
 from pathlib import Path
 from typing import Any
 
-from northfinder.align import runs
-from northfinder.align import swaying_run as sr
 from northfinder.align.swaying import METHODS, minimum_duration_s
+from northfinder.cli import _common
 from northfinder.errors import InputError
 from northfinder.history import record_or_warn
 from northfinder.rundir import RunDir
+from northfinder.runs import swaying as sr
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The swaying mode's own flags on the `align` parser."""
-    runs.add_flag(
+    _common.add_flag(
         parser,
         "--sway",
         default=None,
@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f'swaying, simulated: "roll=AMP:PERIOD,pitch=AMP:PERIOD,yaw=AMP:PERIOD,heave=AMP_M:PERIOD" '
         f"(deg or m, s; 'none' = still ship; default the reference {sr.REFERENCE_SWAY!r})",
     )
-    runs.add_flag(
+    _common.add_flag(
         parser,
         "--sway-period",
         type=float,
@@ -45,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"swaying: the longest sway period [s]; the smoothing window is 4 of them and the window "
         f"must hold 8 (default: from --sway when simulated, else {sr.DEFAULT_SWAY_PERIOD_S:g})",
     )
-    runs.add_flag(
+    _common.add_flag(
         parser,
         "--method",
         choices=METHODS,
@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="swaying: cone (constrained fit, default) | cone-gls (plus a noise-weighted step) | circle "
         "(the paper's free space-circle fit)",
     )
-    runs.add_flag(
+    _common.add_flag(
         parser,
         "--lever-arm",
         default=None,
@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="swaying, simulated: the IMU's position from the ship's centre of rotation [m] (default "
         "1,2,1.5); gnss: the antenna's position in IMU axes [m]",
     )
-    runs.add_flag(
+    _common.add_flag(
         parser,
         "--heading",
         type=float,
@@ -69,7 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DEG",
         help="simulated: the true (mean) heading; gnss on hardware: the heading prior (σ: --heading-std)",
     )
-    runs.add_flag(
+    _common.add_flag(
         parser,
         "--latitude",
         type=float,
@@ -138,7 +138,7 @@ def _check(args: argparse.Namespace) -> tuple[float, dict[str, list[list[float]]
 
 
 def default_out() -> Path:
-    return runs.default_out(sr.KIND)
+    return _common.default_out(sr.KIND)
 
 
 def _preload_matplotlib() -> None:
@@ -174,6 +174,7 @@ def run(args: argparse.Namespace) -> int:
                 imu_port=str(endpoints["imu"]),
                 rate_hz=1000.0,
                 duration_s=duration,
+                progress=_common.DeviceTimeProgress,
                 settings=settings,
                 config_extra={"endpoints": endpoints},
             )
@@ -192,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
             rate_hz=imu.rate_hz,
             baudrate=imu.baudrate,
             duration_s=duration,
+            progress=_common.DeviceTimeProgress,
             settings=settings,
             configure_imu=True,
             config_extra={"bench": imu.__dict__},
@@ -213,8 +215,8 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
     """The rich summary: heading ± σ, pitch, roll, truth and error, the coarse alignment for contrast."""
     from rich.table import Table
 
-    console = runs.summary_console(console, 120)
-    head = runs.summary_head("northfinder align --mode swaying", result)
+    console = _common.summary_console(console, 120)
+    head = _common.summary_head("northfinder align --mode swaying", result)
     head.add_row(
         "pitch, roll",
         f"{result['pitch_deg']:+.3f}° ± {result['pitch_std_deg']:.4f}°, "
@@ -228,13 +230,13 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
     )
     if "truth" in result:
         tr = result["truth"]
-        runs.add_error_rows(
+        _common.add_error_rows(
             head,
             result,
             f"heading {tr['heading_deg']:.4f}°, pitch {tr['pitch_deg']:+.3f}°, roll "
             f"{tr['roll_deg']:+.3f}° at device time {tr['t_device_s']:.3f} s",
         )
-    runs.print_head(console, head, result)
+    _common.print_head(console, head, result)
     t = Table(title="on the same samples (* = the result)")
     for col in ("method", "heading [deg]", "1σ [deg]", "error [deg]"):
         t.add_column(col, justify="right")

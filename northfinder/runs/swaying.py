@@ -31,7 +31,6 @@ from typing import Any
 
 import numpy as np
 
-from northfinder.align import runs
 from northfinder.align.coarse import coarse_align
 from northfinder.align.swaying import (
     KVH_GYRO_RANGE_DPS,
@@ -45,9 +44,11 @@ from northfinder.align.swaying import (
 )
 from northfinder.constants import DEG, OMEGA_EARTH_RAD_S, STANDARD_GRAVITY_M_S2, wrap_deg_180
 from northfinder.errors import ConfigError, DeviceError, InputError
+from northfinder.report import report_axes, save_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
-from northfinder.sequencer import StopFlag
+from northfinder.runs import base
 from northfinder.simulate import SimulatorProcess, firmware_sim_argv
+from northfinder.stopflag import StopFlag
 
 KIND = "align-swaying"
 SCHEMA = "northfinder.align-swaying/1"
@@ -256,7 +257,7 @@ def acquire(
     settings: dict[str, Any],
     baudrate: int = 921600,
     configure_imu: bool = False,
-    progress: bool = True,
+    progress: base.WindowProgress | None = None,
     config_extra: dict[str, Any] | None = None,
 ) -> Window:
     """Read `duration_s` device seconds (samples + lost samples over the rate) from the IMU; raw bytes
@@ -269,17 +270,17 @@ def acquire(
     stop = StopFlag()
     blocks: list[Any] = []
     with stop.installed():
-        with runs.opened(
+        with base.guard(
             "imu",
             imu_port,
             lambda: Imu(imu_port, baudrate=baudrate, raw_log=rd.imu_raw_path, rate_hz=rate_hz, timeout_s=5.0),
         ) as imu:
             if configure_imu:
                 imu.configure()  # read rate and gyro format back: the decoder must know them
-            start = runs.start_event(KIND, duration_s, imu_port, imu, **settings)
+            start = base.start_event(KIND, duration_s, imu_port, imu, **settings)
             rd.log_event(start)
-            with runs.DeviceTimeProgress(duration_s, progress) as view:
-                for done_s in runs.read_imu_window(
+            with base.window_view(progress, duration_s) as view:
+                for done_s in base.read_imu_window(
                     imu, duration_s, stop, blocks, check=lambda b: check_stream(b, imu_port)
                 ):
                     st = imu.stats
@@ -294,9 +295,9 @@ def acquire(
     complete = not stop
     if not blocks:
         rd.log_event({"event": "end", "complete": False, "imu": {"samples": 0}})
-        raise runs.abort_or(stop, rd, "no IMU samples were read")
-    block = runs.concat_blocks(blocks, rate)
-    end = {"event": "end", "complete": complete, "utc": runs.now_utc(), "imu": runs.imu_end(block, stats)}
+        raise base.abort_or(stop, rd, "no IMU samples were read")
+    block = base.concat_blocks(blocks, rate)
+    end = {"event": "end", "complete": complete, "utc": base.now_utc(), "imu": base.imu_end(block, stats)}
     rd.log_event(end)
     return Window(block, start, end, stop)
 
@@ -317,7 +318,7 @@ def first_sequence(raw: bytes) -> int:
 def truth_at_end(rd: RunDir, start: dict[str, Any], first_index: int, last_index: int) -> dict[str, Any]:
     """The ship's attitude at the end of the window's last sample (and at its start), from the truth
     log; the device time comes from the imu_connect anchor and the first frame's sequence number."""
-    truth = runs.read_truth_log(rd.file(TRUTH_LOG))
+    truth = base.read_truth_log(rd.file(TRUTH_LOG))
     rate = float(start["imu"]["rate_hz"])
     c = truth.connect
     if c is None:
@@ -325,7 +326,7 @@ def truth_at_end(rd: RunDir, start: dict[str, Any], first_index: int, last_index
             f"{rd.path}: the truth log has no imu_connect event; cannot place the samples in time"
         )
     if truth.grid_events:
-        raise runs.grid_moved(rd)
+        raise base.grid_moved(rd)
     if float(c["rate_hz"]) != rate:
         raise InputError(
             f"{rd.path}: the truth log's IMU rate {c['rate_hz']:g} Hz is not the run's {rate:g} Hz"
@@ -463,12 +464,12 @@ def replay_swaying_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
     Returns (result, complete); bit-identical to the live result.json for the same run.
     """
     rd = RunDir(run_dir, create=False)
-    start, end = runs.run_events(rd, KIND, "swaying")
+    start, end = base.run_events(rd, KIND, "swaying")
     if end is None or not end["imu"].get("samples"):
         raise InputError(
             f"{rd.path}: the run has no window of samples (killed before it saved one); nothing to recompute"
         )
-    block = runs.imu_window_from_raw(rd, start, end)
+    block = base.imu_window_from_raw(rd, start, end)
     complete = bool(end.get("complete"))
     result, _ = result_from_run(rd, block, start, end, complete)
     return result, complete
@@ -525,7 +526,7 @@ def cone_residuals(block: Any, sol: Any, max_sway_period_s: float) -> dict[str, 
 
 def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], path: str | Path) -> Path:
     """report.png: the body rates (the sway), the cone-fit residuals, the result and its truth."""
-    fig, axes = runs.report_axes(2, (9, 7))
+    fig, axes = report_axes(2, (9, 7))
     ax = axes[0]
     for j, name in enumerate("xyz"):
         ax.plot(resid["t_gyro_s"], resid["gyro_dps"][:, j], lw=0.6, label=f"gyro {name}")
@@ -550,7 +551,7 @@ def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], p
     )
     ax.legend(loc="upper right", fontsize=8)
     ax.grid(True, alpha=0.3)
-    return runs.save_report(fig, path)
+    return save_report(fig, path)
 
 
 def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool = True) -> dict[str, Any]:
@@ -558,14 +559,14 @@ def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool 
     A window cut short by a signal is aligned if it is long enough, then RunAborted (exit 130/143)."""
 
     def save(result: dict[str, Any], sol: Any) -> None:
-        runs.write_result(rd, result, json_path)
+        base.write_result(rd, result, json_path)
         if report:
             with contextlib.suppress(ValueError):  # a window too short for one residual point: no plot
                 write_swaying_report(
                     result, cone_residuals(w.block, sol, float(w.start["max_sway_period_s"])), rd.report_path
                 )
 
-    return runs.finish_window(
+    return base.finish_window(
         rd, w.stop, lambda complete: result_from_run(rd, w.block, w.start, w.end, complete), save
     )
 

@@ -38,15 +38,16 @@ from typing import Any
 
 import numpy as np
 
-from northfinder.align import runs
 from northfinder.align.gnss_ins import GnssAlignConfig, GnssAlignResult, GnssSeries, ImuSeries, align_gnss
-from northfinder.align.runs import TruthLog, read_truth_log
 from northfinder.align.small_angle import align_gnss_small_angle
 from northfinder.codecs.kvh import KvhDecoder
 from northfinder.codecs.nmea import GnssFix, LocalEnu, checksum, fixes_to_arrays
 from northfinder.constants import wrap_deg_180
 from northfinder.errors import ConfigError, InputError
+from northfinder.report import report_axes, save_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
+from northfinder.runs import base
+from northfinder.runs.base import TruthLog, read_truth_log
 
 KIND = "align-gnss"
 SCHEMA = "northfinder.align-gnss/1"
@@ -498,7 +499,7 @@ def window_from_logs(rd: RunDir, start: dict[str, Any], end: dict[str, Any]) -> 
     """The IMU samples and the fixes of the window, decoded from imu.raw and gnss.nmea alone."""
     from northfinder.drivers.gnss import decode_nmea_log
 
-    block = runs.imu_window_from_raw(rd, start, end)
+    block = base.imu_window_from_raw(rd, start, end)
     nmea = rd.file(GNSS_NMEA).read_bytes() if rd.file(GNSS_NMEA).exists() else b""
     fixes, _ = decode_nmea_log(nmea)
     return block, fixes[: int(end["gnss"]["fixes"])]
@@ -528,7 +529,7 @@ def time_alignment(
         host = None
     if truth is not None and truth.imu_t0_s is not None:
         if truth.grid_events:
-            raise runs.grid_moved(rd)
+            raise base.grid_moved(rd)
         if truth.imu_rate_hz != rate:
             raise InputError(
                 f"{rd.path}: the truth log's IMU rate {truth.imu_rate_hz:g} Hz is not the run's {rate:g} Hz"
@@ -573,7 +574,7 @@ def replay_gnss_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
     Returns (result, complete); bit-identical to the live result.json for the same run.
     """
     rd = RunDir(run_dir, create=False)
-    start, end = runs.run_events(rd, KIND, "gnss")
+    start, end = base.run_events(rd, KIND, "gnss")
     if end is None:
         raise InputError(
             f"{rd.path}: the run has no end event (it was killed before saving its window); "
@@ -590,7 +591,7 @@ def replay_gnss_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
 # ---------------------------------------------------------------------------------------------
 def write_gnss_report(result: dict[str, Any], hist: dict[str, Any], path: str | Path) -> Path:
     """report.png: heading error (or heading) and σ against time, position error, lever arm."""
-    fig, axes = runs.report_axes(3, (9, 10), sharex=True)
+    fig, axes = report_axes(3, (9, 10), sharex=True)
     t = np.asarray(hist["t_s"])
     ax = axes[0]
     sig = np.asarray(hist["heading_std_deg"])
@@ -629,13 +630,13 @@ def write_gnss_report(result: dict[str, Any], hist: dict[str, Any], path: str | 
     ax.set_xlabel("device time since the first IMU sample [s]")
     ax.legend(loc="upper right")
     ax.grid(True, alpha=0.3)
-    return runs.save_report(fig, path)
+    return save_report(fig, path)
 
 
 def save_result(
     rd: RunDir, result: dict[str, Any], hist: dict[str, Any], json_path: str | None, report: bool = True
 ) -> None:
-    runs.write_result(rd, result, json_path)
+    base.write_result(rd, result, json_path)
     if report:
         write_gnss_report(result, hist, rd.report_path)
 

@@ -4,7 +4,7 @@ What: open both ports with their raw logs in the run directory (imu.raw, gnss.nm
 host receive stamps (imu.rx, gnss.rx), read `duration_s` of IMU device time (samples + lost
 samples over the rate) with a rich progress bar, take every fix decoded by then, write the
 window's sample range and fix count to events.jsonl, and compute the result through the same
-function replay uses (northfinder.align.gnss_run.result_from_run). Ctrl-C/SIGTERM: the data read so
+function replay uses (northfinder.runs.gnss.result_from_run). Ctrl-C/SIGTERM: the data read so
 far is kept and aligned if it is long enough; the CLI then exits 130 (143 for SIGTERM).
 
 On the simulator (`VehicleSim`, firmware-sim `--scenario vehicle` as a subprocess) the IMU is not
@@ -25,12 +25,12 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from northfinder.align import gnss_run as gr
-from northfinder.align import runs
 from northfinder.errors import DeviceError
 from northfinder.rundir import CONFIG, RunDir
-from northfinder.sequencer import StopFlag
+from northfinder.runs import base
+from northfinder.runs import gnss as gr
 from northfinder.simulate import SimulatorProcess, firmware_sim_argv
+from northfinder.stopflag import StopFlag
 
 SIM_IMU_RATE_HZ = 250
 SIM_DEFAULT_TIME_SCALE = 20.0
@@ -142,7 +142,7 @@ def acquire(
     gnss_start_utc: str | None = None,
     time_scale: float = 1.0,
     gnss_latency_s: float = 0.0,
-    progress: bool = True,
+    progress: base.WindowProgress | None = None,
     config_extra: dict[str, Any] | None = None,
 ) -> Window:
     """Read both devices for `duration_s` device seconds; the raw logs, stamps and events are saved
@@ -156,7 +156,7 @@ def acquire(
     fixes: list[Any] = []
     with stop.installed(), contextlib.ExitStack() as stack:
         imu = stack.enter_context(
-            runs.opened(
+            base.guard(
                 "imu",
                 imu_port,
                 lambda: Imu(
@@ -172,7 +172,7 @@ def acquire(
         if configure_imu:
             imu.configure()  # read the rate and gyro format back: the decoder must know them
         gnss = stack.enter_context(
-            runs.opened(
+            base.guard(
                 "gnss",
                 gnss_port,
                 lambda: Gnss(
@@ -184,7 +184,7 @@ def acquire(
                 ),
             )
         )
-        start = runs.start_event(
+        start = base.start_event(
             gr.KIND,
             duration_s,
             imu_port,
@@ -199,8 +199,8 @@ def acquire(
         rd.log_event(start)
         rate = imu.rate_hz
         last_fix = None
-        with runs.DeviceTimeProgress(duration_s, progress) as view:
-            for done_s in runs.read_imu_window(imu, duration_s, stop, blocks):
+        with base.window_view(progress, duration_s) as view:
+            for done_s in base.read_imu_window(imu, duration_s, stop, blocks):
                 pending = gnss.pending
                 if pending:
                     fixes.extend(gnss.read_fixes(pending, timeout_s=1.0))
@@ -222,17 +222,17 @@ def acquire(
         rd.log_event(
             {"event": "end", "complete": False, "imu": {"samples": 0}, "gnss": {"fixes": len(fixes)}}
         )
-        raise runs.abort_or(stop, rd, "no IMU samples were read")
-    block = runs.concat_blocks(blocks, rate)
+        raise base.abort_or(stop, rd, "no IMU samples were read")
+    block = base.concat_blocks(blocks, rate)
     utc_ref = (
         utc_seconds(gnss_start_utc) if gnss_start_utc else (math.floor(fixes[0].time_s) if fixes else 0.0)
     )
     end = {
         "event": "end",
         "complete": complete,
-        "utc": runs.now_utc(),
+        "utc": base.now_utc(),
         "utc_ref_s": utc_ref,
-        "imu": runs.imu_end(block, imu_stats.as_dict()),
+        "imu": base.imu_end(block, imu_stats.as_dict()),
         "gnss": {"fixes": len(fixes), "stats": gnss_stats.as_dict()},
     }
     rd.log_event(end)
@@ -242,7 +242,7 @@ def acquire(
 def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool = True) -> dict[str, Any]:
     """Align on the window (the function replay uses), save result.json (+ --json) and report.png.
     A window cut short by a signal is aligned if it can be, then RunAborted (exit 130/143)."""
-    return runs.finish_window(
+    return base.finish_window(
         rd,
         w.stop,
         lambda complete: gr.result_from_run(rd, w.block, w.fixes, w.start, w.end, complete),

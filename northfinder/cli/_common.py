@@ -1,0 +1,91 @@
+"""What the two `northfinder align` CLIs (--mode swaying, --mode gnss) share: argparse helpers, the
+device-time progress bar handed to the runs as their view, and the summary's rich rows.
+
+A shared CLI module, not a subcommand: `cli/align_swaying.py`, `cli/align_gnss.py` (and replay,
+through them) import it, so no subcommand module imports another.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+
+def add_flag(parser: argparse.ArgumentParser, flag: str, **kwargs: Any) -> None:
+    """Add a flag unless another align mode already did (`--heading`, `--latitude` are shared)."""
+    if flag not in parser._option_string_actions:
+        parser.add_argument(flag, **kwargs)
+
+
+def default_out(kind: str) -> Path:
+    """runs/<kind>-<UTC time>: the run directory when --out is not given."""
+    return Path("runs") / datetime.now(UTC).strftime(f"{kind}-%Y%m%dT%H%M%SZ")
+
+
+class DeviceTimeProgress:
+    """rich progress bar in device time on stderr; `show(done_s, info)` with the mode's counters.
+    The align runs take it as their `progress` hook (they never import the view)."""
+
+    def __init__(self, duration_s: float, enabled: bool = True):
+        from rich.console import Console
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.progress = Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TextColumn("{task.fields[info]}"),
+            TimeElapsedColumn(),
+            console=Console(stderr=True),
+            disable=not enabled,
+        )
+        self.task = self.progress.add_task("device time", total=duration_s, info="waiting for data")
+
+    def show(self, done_s: float, info: str) -> None:
+        self.progress.update(self.task, completed=done_s, info=info)
+
+    def __enter__(self) -> DeviceTimeProgress:
+        self.progress.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.progress.stop()
+
+
+def summary_console(console: Any, min_width: int) -> Any:
+    """The console to print on: a given one, else stdout (at least `min_width` wide when piped)."""
+    from rich.console import Console
+
+    if console is None:
+        console = Console()
+        if not console.is_terminal:
+            console = Console(width=max(console.width, min_width))
+    return console
+
+
+def summary_head(title: str, result: dict[str, Any]) -> Any:
+    """The summary's first table with its heading row."""
+    from rich.table import Table
+
+    head = Table(title=title, show_header=False, box=None)
+    head.add_row(
+        "heading",
+        f"[bold]{result['heading_deg']:.4f}° ± {result['heading_std_deg']:.4f}°[/] (1σ, {result['method']})",
+    )
+    return head
+
+
+def add_error_rows(head: Any, result: dict[str, Any], truth_text: str) -> None:
+    """The truth row and the error in units of the reported σ."""
+    ratio = abs(result["error_deg"]) / result["heading_std_deg"] if result["heading_std_deg"] else math.inf
+    head.add_row("truth", truth_text)
+    head.add_row("error", f"[bold]{result['error_deg']:+.4f}°[/] ({ratio:.2f} σ)")
+
+
+def print_head(console: Any, head: Any, result: dict[str, Any]) -> None:
+    """The incomplete marker (a run stopped early) and the head table."""
+    if not result.get("complete", True):
+        head.add_row("[red]INCOMPLETE[/]", "stopped before the end of the window")
+    console.print(head)
