@@ -22,19 +22,24 @@ USAGE_EXIT, DEVICE_EXIT, DAMAGED_EXIT = 2, 3, 4
 FAST = ("--simulate", "--positions", "3", "--dwell", "2", "--no-report")
 
 
+def _bench_on_no_port(tmp_path: Path) -> Path:
+    """A valid bench.toml whose turntable port does not exist."""
+    bench = tmp_path / "bench.toml"
+    bench.write_text(
+        f'[turntable]\nport = "{tmp_path / "ttyNONE"}"\n[imu]\nport = "{tmp_path / "ttyIMU"}"\n'
+        f'[accelerometer]\ninterface = "virtual"\nchannel = "{tmp_path.name}"\n[site]\nlatitude_deg = 40.0\n',
+        encoding="utf-8",
+    )
+    return bench
+
+
 def test_bad_config_bad_latitude_and_bad_port_leave_no_run_directory(tmp_path):
     out = tmp_path / "run"
     missing = run_cli("find", "--config", str(tmp_path / "nope.toml"), "--out", str(out), cwd=tmp_path)
     assert missing.returncode == USAGE_EXIT and "nope.toml" in northfinder_line(missing.stderr)
     lat = run_cli("find", "--simulate", "--latitude", "95", "--out", str(out), cwd=tmp_path)
     assert lat.returncode == USAGE_EXIT and "--latitude 95" in northfinder_line(lat.stderr)
-    bench = tmp_path / "bench.toml"
-    bench.write_text(
-        f'[turntable]\nport = "{tmp_path / "ttyNONE"}"\n[imu]\nport = "{tmp_path / "ttyIMU"}"\n'
-        '[accelerometer]\ninterface = "virtual"\nchannel = "rough-edges"\n[site]\nlatitude_deg = 40.0\n',
-        encoding="utf-8",
-    )
-    port = run_cli("find", "--config", str(bench), "--out", str(out), cwd=tmp_path)
+    port = run_cli("find", "--config", str(_bench_on_no_port(tmp_path)), "--out", str(out), cwd=tmp_path)
     line = northfinder_line(port.stderr)
     assert port.returncode == DEVICE_EXIT and "turntable" in line and "ttyNONE" in line, port.stderr
     assert not out.exists(), sorted(p.name for p in out.iterdir())
@@ -44,13 +49,7 @@ def test_an_existing_out_directory_is_never_removed_by_a_failed_start(tmp_path):
     out = tmp_path / "mine"
     out.mkdir()
     (out / "notes.txt").write_text("the user's", encoding="utf-8")
-    bench = tmp_path / "bench.toml"
-    bench.write_text(
-        f'[turntable]\nport = "{tmp_path / "ttyNONE"}"\n[imu]\nport = "x"\n'
-        '[accelerometer]\ninterface = "virtual"\nchannel = "rough-edges-2"\n[site]\nlatitude_deg = 40.0\n',
-        encoding="utf-8",
-    )
-    proc = run_cli("find", "--config", str(bench), "--out", str(out), cwd=tmp_path)
+    proc = run_cli("find", "--config", str(_bench_on_no_port(tmp_path)), "--out", str(out), cwd=tmp_path)
     assert proc.returncode == DEVICE_EXIT
     assert (out / "notes.txt").read_text(encoding="utf-8") == "the user's"
 

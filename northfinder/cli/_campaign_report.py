@@ -30,13 +30,22 @@ def print_campaign(state: dict[str, Any], console: Any = None) -> None:
     """Table 1 of the paper, one column per method: each find's deviation from its reference
     [arc min], then mean (= deviation from the reference), std, RMS, max; then degrees and σ."""
     from rich.console import Console
-    from rich.markup import escape
-    from rich.table import Table
 
     if console is None:
         console = Console()
         if not console.is_terminal:
             console = Console(width=max(console.width, 150))
+    console.print(_arcmin_table(state))
+    console.print(_degrees_table(state))
+    if len(state.get("steps", [])) > 1:
+        console.print(_steps_table(state))
+
+
+def _arcmin_table(state: dict[str, Any]) -> Any:
+    """Each find's deviation per method [arc min] and the statistics rows (the paper's table 1)."""
+    from rich.markup import escape
+    from rich.table import Table
+
     stats, runs, main = state.get("statistics", {}), state["runs"], state["method"]
     methods = list(stats)
     t = Table(title=escape("campaign: heading − reference azimuth [arc min] (layout of the paper's table 1)"))
@@ -71,12 +80,19 @@ def print_campaign(state: dict[str, Any], console: Any = None) -> None:
         *(_deg(stats[m].get("observed_over_reported"), ".2f") for m in methods),
         "",
     )
-    console.print(t)
+    return t
 
+
+def _degrees_table(state: dict[str, Any]) -> Any:
+    """Every method's statistics in degrees."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    stats, runs = state.get("statistics", {}), state["runs"]
     d = Table(title=f"every method in degrees ({len(runs)} finds)")
     for col in ("method", "mean [°]", "std [°]", "RMS [°]", "max |dev| [°]", "mean σ [°]", "std/σ"):
         d.add_column(escape(col), justify="right" if col != "method" else "left")
-    for m in methods:
+    for m in stats:
         s = stats[m]
         d.add_row(
             m,
@@ -87,22 +103,27 @@ def print_campaign(state: dict[str, Any], console: Any = None) -> None:
             _deg(s.get("mean_reported_sigma_deg"), ".5f"),
             _deg(s.get("observed_over_reported"), ".2f"),
         )
-    console.print(d)
-    steps = state.get("steps", [])
-    if len(steps) > 1:
-        st = Table(title=f"{main} per base heading")
-        for col in ("step", "reference [°]", "n", "mean [′]", "std [′]", "mean σ [′]"):
-            st.add_column(escape(col), justify="right")
-        for s in steps:
-            st.add_row(
-                str(s["step"] + 1),
-                f"{s['reference_deg']:.3f}",
-                str(s["n"]),
-                _am(s.get("mean_arcmin")),
-                _am(s.get("std_arcmin"), ".3f"),
-                _am(s.get("mean_reported_sigma_arcmin"), ".3f"),
-            )
-        console.print(st)
+    return d
+
+
+def _steps_table(state: dict[str, Any]) -> Any:
+    """The main method per base heading (a campaign of more than one step)."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    st = Table(title=f"{state['method']} per base heading")
+    for col in ("step", "reference [°]", "n", "mean [′]", "std [′]", "mean σ [′]"):
+        st.add_column(escape(col), justify="right")
+    for s in state.get("steps", []):
+        st.add_row(
+            str(s["step"] + 1),
+            f"{s['reference_deg']:.3f}",
+            str(s["n"]),
+            _am(s.get("mean_arcmin")),
+            _am(s.get("std_arcmin"), ".3f"),
+            _am(s.get("mean_reported_sigma_arcmin"), ".3f"),
+        )
+    return st
 
 
 def write_figure(state: dict[str, Any], path: str | Path) -> Path:
@@ -113,13 +134,25 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(16, 5), gridspec_kw={"width_ratios": [2.2, 1, 1.4]})
+    _finds_panel(a1, state)
+    _histogram_panel(a2, state)
+    _methods_panel(a3, state)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def _finds_panel(a1: Any, state: dict[str, Any]) -> None:
+    """The main method's deviation per find with its reported ±1σ, against the reference (0)."""
     import matplotlib.ticker
 
     runs, main, stats = state["runs"], state["method"], state["statistics"]
     dev = np.array([r["error_deg"] for r in runs]) * ARCMIN_PER_DEG
     sig = np.array([r["heading_std_deg"] for r in runs]) * ARCMIN_PER_DEG
     steps = np.array([r["step"] for r in runs])
-    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(16, 5), gridspec_kw={"width_ratios": [2.2, 1, 1.4]})
     x = np.arange(1, len(runs) + 1)
     for s in sorted(set(steps.tolist())):
         k = steps == s
@@ -137,6 +170,12 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
     a1.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=3)
     a1.grid(True, alpha=0.3)
 
+
+def _histogram_panel(a2: Any, state: dict[str, Any]) -> None:
+    """The deviations' histogram with the normal curve of the mean reported σ."""
+    main = state["method"]
+    m = state["statistics"][main]
+    dev = np.array([r["error_deg"] for r in state["runs"]]) * ARCMIN_PER_DEG
     a2.hist(dev, bins=max(5, min(20, len(dev) // 2)), density=True, alpha=0.6, label="finds")
     if m.get("mean_reported_sigma_arcmin"):
         s0 = m["mean_reported_sigma_arcmin"]
@@ -152,6 +191,10 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
     a2.legend(fontsize=8)
     a2.grid(True, alpha=0.3)
 
+
+def _methods_panel(a3: Any, state: dict[str, Any]) -> None:
+    """Every method's mean ± std and RMS side by side (a method far off scale written in)."""
+    stats = state["statistics"]
     names = list(stats)
     xi = np.arange(len(names))
     means = [stats[n]["mean_arcmin"] for n in names]
@@ -165,10 +208,6 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
     a3.set_title("every method")
     a3.legend(fontsize=8)
     a3.grid(True, alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
 
 
 def _clip_outliers(ax: Any, xi: np.ndarray, names: list[str], stats: dict[str, Any]) -> None:

@@ -564,21 +564,10 @@ _IMU_COUNTERS = ("frames", "bad_crc", "resyncs", "sequence_gaps", "lost_samples"
 _ACCEL_COUNTERS = ("pairs", "unpaired", "counter_gaps", "lost_samples", "emcy", "heartbeats", "malformed")
 
 
-def faults_summary(events: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """What went wrong during a run and what was done about it, from its events log alone (the live
-    run and replay both call this, so the result's `faults` replays exactly):
-
-    - `remeasured`: every position measured again, with the attempt and the reason;
-    - `stage_errors`: stage errors on moves (stall / following error) and the retry;
-    - `imu`: the decoder's stream counters summed over sessions (bad CRC, resyncs, gaps, lost
-      samples), the reconnects, and the samples lost inside the kept dwells;
-    - `accel`: the node's counters, its emergencies, the kept dwells' lost samples, and the
-      positions whose dwell saw no heartbeat (device time ≥ 2.5 heartbeat periods of 1 s);
-    - `sessions`: how many times the run was started (1 + resumes).
-    """
-    stats = [e for e in events if e.get("event") == "stats"]
-    kept = [e for e in events if e.get("event") == "position"]
-    imu = {k: int(sum(int(e.get("imu", {}).get(k, 0)) for e in stats)) for k in _IMU_COUNTERS}
+def _imu_faults(stats: list[dict[str, Any]], kept: list[dict[str, Any]]) -> dict[str, Any]:
+    """The IMU's stream counters summed over sessions, reconnects, stalls, the kept dwells' lost
+    samples and the samples flagged not valid per axis the unit has."""
+    imu: dict[str, Any] = {k: int(sum(int(e.get("imu", {}).get(k, 0)) for e in stats)) for k in _IMU_COUNTERS}
     imu["reconnects"] = int(sum(int(e.get("imu_reconnects", 0)) for e in stats))
     imu["stalls"] = int(sum(int(e.get("imu_stalls", 0)) for e in stats))
     imu["lost_in_dwells"] = int(sum(int(e["imu"]["lost"]) for e in kept))
@@ -592,6 +581,13 @@ def faults_summary(events: Sequence[dict[str, Any]]) -> dict[str, Any]:
     imu["invalid_in_dwells"] = {  # per gyro axis: flagged samples left out of the kept dwells
         k: int(sum(int(e["imu"].get("invalid", {}).get(k, 0)) for e in kept)) for k in names if k[0] == "g"
     }
+    return imu
+
+
+def _accel_faults(events: Sequence[dict[str, Any]], stats: list[dict[str, Any]],
+                  kept: list[dict[str, Any]]) -> dict[str, Any]:
+    """The node's counters, emergencies, the kept dwells' lost samples, and the positions whose
+    dwell saw no heartbeat (device time ≥ 2.5 heartbeat periods of 1 s)."""
     accel: dict[str, Any] = {
         k: int(sum(int(e.get("accel", {}).get(k, 0)) for e in stats)) for k in _ACCEL_COUNTERS
     }
@@ -606,6 +602,25 @@ def faults_summary(events: Sequence[dict[str, Any]]) -> dict[str, Any]:
             if (e["accel"]["samples"] + e["accel"]["lost"]) / rate_hz >= 2.5:
                 silent.append(int(e["index"]))
     accel["heartbeat_lost_positions"] = silent
+    return accel
+
+
+def faults_summary(events: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """What went wrong during a run and what was done about it, from its events log alone (the live
+    run and replay both call this, so the result's `faults` replays exactly):
+
+    - `remeasured`: every position measured again, with the attempt and the reason;
+    - `stage_errors`: stage errors on moves (stall / following error) and the retry;
+    - `imu`: the decoder's stream counters summed over sessions (bad CRC, resyncs, gaps, lost
+      samples), the reconnects, and the samples lost inside the kept dwells;
+    - `accel`: the node's counters, its emergencies, the kept dwells' lost samples, and the
+      positions whose dwell saw no heartbeat (device time ≥ 2.5 heartbeat periods of 1 s);
+    - `sessions`: how many times the run was started (1 + resumes).
+    """
+    stats = [e for e in events if e.get("event") == "stats"]
+    kept = [e for e in events if e.get("event") == "position"]
+    imu = _imu_faults(stats, kept)
+    accel = _accel_faults(events, stats, kept)
     return {
         "sessions": max(1, sum(e.get("event") == "start" for e in events)),
         "remeasured": [
