@@ -28,7 +28,6 @@ from northfinder.constants import DPH
 from northfinder.drivers.turntable import StageError
 from northfinder.errors import ConfigError, DeviceError, NorthfinderError
 from northfinder.estimators.means import PositionMeans, position_means
-from northfinder.rundir import RunDir
 from northfinder.stopflag import StopFlag
 
 log = logging.getLogger(__name__)
@@ -42,6 +41,10 @@ class _Turntable(Protocol):  # the parts of northfinder.drivers.turntable.Turnta
     def position_deg(self) -> float: ...
     def stop(self) -> Any: ...
     def soft_limits_deg(self) -> tuple[float, float]: ...
+
+
+class _EventLog(Protocol):  # northfinder.rundir.RunDir: the sequencer only appends events to it
+    def log_event(self, event: dict[str, Any]) -> None: ...
 
 
 MIN_VISIBLE_MOVE_DEG = 0.5
@@ -174,7 +177,7 @@ class Sequencer:
         run: RunConfig,
         *,
         allow_home: bool = True,
-        rundir: RunDir | None = None,
+        rundir: _EventLog | None = None,
         on_progress: Callable[[Progress], None] | None = None,
         stop_flag: StopFlag | None = None,
         accel_rate_hz: float = 100.0,
