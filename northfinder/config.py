@@ -10,15 +10,21 @@ from __future__ import annotations
 import dataclasses
 import math
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from northfinder.align.limits import latitude_problem
 from northfinder.errors import ConfigError
+from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG
 
 METHODS = ("exact", "vector", "coordinate_transform", "uncompensated", "eq11")
 ORDERS = ("sequential", "alternating")
 IMU_RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
+ROT_FORMATS = ("DELTA", "RATE")
+ROT_UNITS = ("RAD", "DEG")
+ALIGN_MODES = ("swaying", "gnss")
 CAN_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
 
 
@@ -50,6 +56,10 @@ class ImuConfig:
     """Host seconds without a byte after which the stream counts as paused (its length unknown: the
     7-bit sequence aliases every 128 samples). Bytes a USB adapter holds back and then bursts are
     no pause; lost samples are decided by the sequence counter."""
+    rot_format: str = "DELTA"
+    """Gyro field as the IMU is configured to send it (`?ROTFMT`): DELTA angle or RATE."""
+    rot_units: str = "RAD"
+    """Gyro units (`?ROTUNITS`): RAD or DEG."""
 
 
 @dataclass
@@ -73,6 +83,22 @@ class AccelerometerConfig:
     bus_options: dict[str, Any] = field(default_factory=dict)
     """Extra python-can bus arguments, e.g. `{sleep_after_open = 0.1}` for an slcan adapter that
     does not reset when its port opens (python-can waits 2 s by default)."""
+
+
+@dataclass
+class GnssConfig:
+    """`[gnss]`: the NMEA receiver of `align --mode gnss` and what the filter assumes about it."""
+
+    port: str = ""
+    baudrate: int = 115200
+    lever_arm_m: tuple[float, float, float] | None = None
+    """Antenna position in IMU body axes (x right, y forward, z up) [m], tape-measured."""
+    lever_arm_std_m: float = 0.3
+    """1σ of the tape-measured lever arm; without `lever_arm_m` the prior is 0 ± 1 m."""
+    pos_std_m: tuple[float, float, float] = (0.5, 0.5, 1.0)
+    vel_std_m_s: float = 0.05
+    latency_s: float = 0.0
+    """Receiver output latency (epoch → first byte) subtracted in the host time alignment."""
 
 
 @dataclass
@@ -118,6 +144,7 @@ class BenchConfig:
     turntable: TurntableConfig = field(default_factory=TurntableConfig)
     imu: ImuConfig = field(default_factory=ImuConfig)
     accelerometer: AccelerometerConfig = field(default_factory=AccelerometerConfig)
+    gnss: GnssConfig = field(default_factory=GnssConfig)
     site: SiteConfig = field(default_factory=SiteConfig)
     run: RunConfig = field(default_factory=RunConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
@@ -139,6 +166,7 @@ _SECTIONS = {
     "turntable": TurntableConfig,
     "imu": ImuConfig,
     "accelerometer": AccelerometerConfig,
+    "gnss": GnssConfig,
     "site": SiteConfig,
     "run": RunConfig,
     "estimator": EstimatorConfig,
@@ -149,8 +177,24 @@ def _bad(key: str, value: Any, allowed: str, source: str) -> ConfigError:
     return ConfigError(f"{source}: {key} = {value!r} is not allowed; {allowed}")
 
 
+_TRIPLES = {("gnss", "lever_arm_m"), ("gnss", "pos_std_m")}
+"""Keys that hold three numbers [x, y, z] (a TOML array)."""
+
+
+def _triple(key: str, value: Any, source: str) -> tuple[float, float, float]:
+    if not (
+        isinstance(value, list | tuple)
+        and len(value) == 3
+        and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+    ):
+        raise _bad(key, value, "use three numbers [x, y, z] in metres", source)
+    return (float(value[0]), float(value[1]), float(value[2]))
+
+
 def _coerce(section: str, name: str, value: Any, default: Any, source: str) -> Any:
     key = f"[{section}] {name}"
+    if (section, name) in _TRIPLES:
+        return _triple(key, value, source)
     if isinstance(default, bool):
         if not isinstance(value, bool):
             raise _bad(key, value, "use true or false", source)
@@ -253,12 +297,13 @@ def _validate(cfg: BenchConfig) -> None:
     need(_is_object(a.rate_object), "[accelerometer] rate_object", a.rate_object,
          "name an object as INDEX:SUB in hex, e.g. 2100:0 or 1800:5")
     need(0 <= a.heartbeat_ms <= 0xFFFF, "[accelerometer] heartbeat_ms", a.heartbeat_ms, "use 0…65535")
+    lim = MAX_ABS_LATITUDE_DEG
     if not math.isnan(site.latitude_deg):
         need(
-            -89.0 <= site.latitude_deg <= 89.0,
+            -lim <= site.latitude_deg <= lim,
             "[site] latitude_deg",
             site.latitude_deg,
-            "use −89…89 (north positive; within 1° of a pole the heading is undefined)",
+            f"use −{lim:g}…{lim:g} (north positive; within {90 - lim:g}° of a pole the heading is undefined)",
         )
     need(
         math.isfinite(site.height_m) and -500.0 <= site.height_m <= 10_000.0,
@@ -294,6 +339,20 @@ def _validate(cfg: BenchConfig) -> None:
         "use a rate greater than 0 deg/h",
     )
     need(e.method in METHODS, "[estimator] method", e.method, f"use one of {', '.join(METHODS)}")
+    _validate_align(cfg, need)
+
+
+def _validate_align(cfg: BenchConfig, need: Callable[[bool, str, Any, str], None]) -> None:
+    """The ranges of what only `align` reads: the IMU's gyro format and the `[gnss]` table."""
+    i, g = cfg.imu, cfg.gnss
+    formats, units = ", ".join(ROT_FORMATS), ", ".join(ROT_UNITS)
+    need(i.rot_format in ROT_FORMATS, "[imu] rot_format", i.rot_format, f"use one of {formats}")
+    need(i.rot_units in ROT_UNITS, "[imu] rot_units", i.rot_units, f"use one of {units}")
+    need(g.baudrate > 0, "[gnss] baudrate", g.baudrate, "use a positive baud rate")
+    for key, v in (("[gnss] lever_arm_std_m", g.lever_arm_std_m), ("[gnss] vel_std_m_s", g.vel_std_m_s)):
+        need(math.isfinite(v) and v > 0, key, v, "use a number greater than 0")
+    need(all(v > 0 for v in g.pos_std_m), "[gnss] pos_std_m", list(g.pos_std_m), "use three σ greater than 0")
+    need(math.isfinite(g.latency_s) and 0 <= g.latency_s < 1, "[gnss] latency_s", g.latency_s, "use 0 … 1 s")
 
 
 def accel_eds_path(cfg: BenchConfig) -> Path | None:
@@ -336,6 +395,35 @@ def require_ports(cfg: BenchConfig) -> None:
                 f"{cfg.source}: {key} = {port!r} is also {seen[port]}; each device needs its own port"
             )
         seen[port] = key
+
+
+def require_align(cfg: BenchConfig, mode: str, latitude_deg: float | None = None) -> float:
+    """For a real-hardware `align --mode MODE` run: the ports it reads (the IMU; the GNSS receiver
+    for gnss, on its own port) and, for swaying, the site latitude inside the align estimators'
+    range (`latitude_deg`, from --latitude, overrides [site]). Returns the latitude (NaN for gnss,
+    which takes its position from the receiver)."""
+    s = cfg.source
+    if not cfg.imu.port:
+        raise ConfigError(f"{s}: [imu] port is missing; give the IMU's serial port")
+    if mode == "gnss":
+        if not cfg.gnss.port:
+            raise ConfigError(f"{s}: [gnss] port is missing; give the GNSS receiver's serial port")
+        if cfg.gnss.port == cfg.imu.port:
+            raise ConfigError(
+                f"{s}: [imu] port and [gnss] port are both {cfg.imu.port}; give each its own port"
+            )
+        return float("nan")
+    if latitude_deg is not None:
+        return float(latitude_deg)  # the CLI checked --latitude with the same words
+    lat = cfg.site.latitude_deg
+    if math.isnan(lat):
+        raise ConfigError(
+            f"{s}: [site] latitude_deg is missing; give the site's latitude (or --latitude DEG)"
+        )
+    problem = latitude_problem(lat)
+    if problem:
+        raise _bad("[site] latitude_deg", lat, problem, s)
+    return lat
 
 
 def position_plan_deg(n: int, start_deg: float = 0.0, order: str = "sequential") -> list[float]:

@@ -30,7 +30,7 @@ import io
 import threading
 import time
 from pathlib import Path
-from typing import IO, BinaryIO, TextIO
+from typing import IO, Any, BinaryIO, TextIO
 
 import serial
 
@@ -250,3 +250,41 @@ class SerialTransport:
 
     def __repr__(self) -> str:
         return f"SerialTransport({self.url!r}, device={self.device!r})"
+
+
+class StampedTransport:
+    """A SerialTransport whose every received chunk is stamped with the host's monotonic clock (the
+    GNSS alignment's host time alignment of two ports, northfinder.runs.gnss.time_alignment).
+
+    Appends "host_s total_bytes" to `stamp_path` (flushed every `flush_s`, and at close), so the
+    arrival time of any byte of the raw log can be looked up afterwards.
+    """
+
+    def __init__(self, inner: Any, stamp_path: str | Path, flush_s: float = 0.5):
+        self._inner = inner
+        self.url = inner.url
+        self._fh = open(stamp_path, "w", encoding="ascii")  # noqa: SIM115 - closed in close()
+        self._total = 0
+        self._flush_s = flush_s
+        self._last_flush = time.monotonic()
+
+    def write(self, data: bytes) -> None:
+        self._inner.write(data)
+
+    def read_available(self, max_bytes: int = 1 << 16) -> bytes:
+        data = self._inner.read_available(max_bytes)
+        if data:
+            now = time.monotonic()
+            self._total += len(data)
+            self._fh.write(f"{now:.6f} {self._total}\n")
+            if now - self._last_flush >= self._flush_s:
+                self._fh.flush()
+                self._last_flush = now
+        return data
+
+    def close(self) -> None:
+        try:
+            self._inner.close()
+        finally:
+            if not self._fh.closed:
+                self._fh.close()

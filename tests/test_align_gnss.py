@@ -210,20 +210,29 @@ def test_a_port_that_does_not_exist_is_one_line_naming_it(tmp_path, capsys):
 
 
 def test_bench_config_keys_are_checked(tmp_path):
+    """[imu] and [gnss] are read by northfinder.config, the one configuration every mode uses."""
+    from northfinder import config
+
+    def load(text: str) -> config.BenchConfig:
+        cfg.write_text(text)
+        bench = config.load(cfg)
+        config.require_align(bench, "gnss")
+        return bench
+
     cfg = tmp_path / "bench.toml"
-    cfg.write_text('[imu]\nport = "/dev/a"\n[gnss]\nport = "/dev/b"\nlever_arm = [1, 2, 3]\n')
-    with pytest.raises(gr.ConfigError, match=r"unknown key \[gnss\] lever_arm"):
-        gr.load_bench(cfg)
-    cfg.write_text('[imu]\nport = "/dev/a"\n[gnss]\nport = "/dev/b"\nlever_arm_m = [1, 2]\n')
-    with pytest.raises(gr.ConfigError, match=r"\[gnss\] lever_arm_m"):
-        gr.load_bench(cfg)
-    cfg.write_text('[imu]\nport = "/dev/a"\n[gnss]\nport = "/dev/a"\n')
-    with pytest.raises(gr.ConfigError, match="both /dev/a"):
-        gr.load_bench(cfg)
-    cfg.write_text(
+    with pytest.raises(config.ConfigError, match=r"unknown key \[gnss\] lever_arm;"):
+        load('[imu]\nport = "/dev/a"\n[gnss]\nport = "/dev/b"\nlever_arm = [1, 2, 3]\n')
+    with pytest.raises(config.ConfigError, match=r"\[gnss\] lever_arm_m = \[1, 2\] is not allowed"):
+        load('[imu]\nport = "/dev/a"\n[gnss]\nport = "/dev/b"\nlever_arm_m = [1, 2]\n')
+    with pytest.raises(config.ConfigError, match="both /dev/a"):
+        load('[imu]\nport = "/dev/a"\n[gnss]\nport = "/dev/a"\n')
+    with pytest.raises(config.ConfigError, match=r"\[imu\] rot_format = 'ANGLE' is not allowed; use one"):
+        load('[imu]\nport = "/dev/a"\nrot_format = "ANGLE"\n[gnss]\nport = "/dev/b"\n')
+    with pytest.raises(config.ConfigError, match=r"\[gnss\] latency_s = 2.0 is not allowed; use 0 … 1 s"):
+        load('[imu]\nport = "/dev/a"\n[gnss]\nport = "/dev/b"\nlatency_s = 2.0\n')
+    bench = load(
         '[imu]\nport = "/dev/a"\nrate_hz = 250\n[gnss]\nport = "/dev/b"\nlever_arm_m = [0.5, 1.5, 1.2]\n'
     )
-    bench = gr.load_bench(cfg)
     assert bench.gnss.lever_arm_m == (0.5, 1.5, 1.2) and bench.imu.rate_hz == 250
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import sys
@@ -25,6 +26,11 @@ def test_example_config_loads_with_its_documented_values():
     assert cfg.run.positions == 8 and cfg.run.dwell_s == 30.0
     assert cfg.estimator.method == "exact"
     bench.require_ports(cfg)
+    # the same file serves both align modes (one configuration, one validation)
+    assert cfg.gnss.port == "/dev/ttyUSB2" and cfg.gnss.lever_arm_m == (0.5, 1.5, 1.2)
+    assert cfg.imu.rot_format == "DELTA" and cfg.imu.rot_units == "RAD"
+    assert bench.require_align(cfg, "swaying") == 40.0 and bench.require_align(cfg, "swaying", -12.5) == -12.5
+    assert math.isnan(bench.require_align(cfg, "gnss"))
 
 
 @pytest.mark.parametrize(

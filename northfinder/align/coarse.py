@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from northfinder.align.limits import LATITUDE_ADVICE, latitude_problem
 from northfinder.align.swaying import white_noise_density
 from northfinder.constants import DEG, OMEGA_EARTH_RAD_S
 from northfinder.errors import InputError
@@ -56,8 +57,8 @@ def coarse_align(
     if not np.any(f):
         raise InputError(
             "the IMU delivers no accelerometer data (all zero): coarse alignment needs accelerometers")
-    if abs(latitude_deg) > 85.0:
-        raise InputError(f"latitude {latitude_deg}° is outside ±85°: the horizontal Earth rate is too small")
+    if latitude_problem(latitude_deg):
+        raise InputError(f"latitude {latitude_deg:g}: {LATITUDE_ADVICE}")
     w_mean = w.mean(axis=0)
     f_mean = f.mean(axis=0)
     up = f_mean / np.linalg.norm(f_mean)

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from northfinder.align.limits import LATITUDE_ADVICE, latitude_problem
 from northfinder.constants import (
     DEG,
     DPH,
@@ -338,9 +339,8 @@ def align_swaying(
         raise InputError(f"swaying alignment needs the IMU sample rate; got rate_hz={rate_hz}")
     if method not in METHODS:
         raise InputError(f"unknown swaying method '{method}': use one of {', '.join(METHODS)}")
-    if not np.isfinite(latitude_deg) or abs(latitude_deg) > 85.0:
-        raise InputError(f"latitude {latitude_deg}° is outside ±85°: near the pole the Earth axis is "
-                         "vertical and has no usable horizontal projection")
+    if latitude_problem(latitude_deg):
+        raise InputError(f"latitude {latitude_deg:g}: {LATITUDE_ADVICE}")
     dt = 1.0 / rate_hz
     _check_status(status)
     if not np.all(np.isfinite(gyro)) or not np.all(np.isfinite(accel_g)):

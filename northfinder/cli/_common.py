@@ -13,11 +13,23 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from northfinder.align.limits import latitude_problem
+from northfinder.errors import InputError
+
 
 def add_flag(parser: argparse.ArgumentParser, flag: str, **kwargs: Any) -> None:
     """Add a flag unless another align mode already did (`--heading`, `--latitude` are shared)."""
     if flag not in parser._option_string_actions:
         parser.add_argument(flag, **kwargs)
+
+
+def check_latitude(args: argparse.Namespace) -> None:
+    """`--latitude` inside the align estimators' range (the same words in both modes and in a
+    bench file's [site] latitude_deg: northfinder.align.limits)."""
+    lat = getattr(args, "latitude", None)
+    problem = latitude_problem(lat) if lat is not None else None
+    if problem:
+        raise InputError(f"--latitude {lat:g}: {problem}")
 
 
 def default_out(kind: str) -> Path:

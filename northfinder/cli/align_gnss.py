@@ -13,9 +13,11 @@ import argparse
 import math
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from northfinder import config
 from northfinder.cli import _common
 from northfinder.errors import InputError
 from northfinder.history import record_or_warn
@@ -118,6 +120,7 @@ def _check(args: argparse.Namespace) -> float:
             raise InputError("--fault is for --simulate")
     if args.heading_error is not None and not math.isfinite(args.heading_error):
         raise InputError(f"--heading-error {args.heading_error}: give degrees")
+    _common.check_latitude(args)
     return duration
 
 
@@ -204,7 +207,8 @@ def run(args: argparse.Namespace) -> int:
             )
         # the simulator has stopped (its truth log is complete) before the filters take the CPU
     else:
-        bench = gr.load_bench(args.config)
+        bench = config.load(args.config)
+        config.require_align(bench, "gnss")
         g = bench.gnss
         prior = lever or g.lever_arm_m
         settings = {
@@ -230,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
             gnss_baudrate=g.baudrate,
             configure_imu=True,
             gnss_latency_s=g.latency_s,
-            config_extra={"bench": {"imu": bench.imu.__dict__, "gnss": g.__dict__, "source": bench.source}},
+            config_extra={"bench": {"imu": asdict(bench.imu), "gnss": asdict(g), "source": bench.source}},
         )
     t_read = time.monotonic()
     result = live.finish(rd, window, json_path=args.json)

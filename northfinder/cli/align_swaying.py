@@ -15,9 +15,11 @@ import math
 import sys
 import threading
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from northfinder import config
 from northfinder.align.swaying import METHODS, minimum_duration_s
 from northfinder.cli import _common
 from northfinder.errors import InputError
@@ -123,11 +125,7 @@ def _check(args: argparse.Namespace) -> tuple[float, dict[str, list[list[float]]
             f"{need:.0f} device seconds (two smoothing windows of 4 × the {period:g} s longest "
             "sway period); 300 s gives ~0.05° with a navigation-grade IMU"
         )
-    if args.latitude is not None and not (math.isfinite(args.latitude) and abs(args.latitude) <= 85.0):
-        raise InputError(
-            f"--latitude {args.latitude:g}: use −85 … 85 degrees (north positive); nearer the "
-            "pole the Earth axis has no usable horizontal projection"
-        )
+    _common.check_latitude(args)
     if (
         args.simulate
         and args.time_scale is not None
@@ -180,23 +178,20 @@ def run(args: argparse.Namespace) -> int:
             )
         # the simulator has stopped (its truth log is complete) before the estimator takes the CPU
     else:
-        imu = sr.load_bench(args.config, args.latitude)
-        if abs(imu.latitude_deg) > 85.0:
-            raise InputError(
-                f"{imu.source}: [site] latitude_deg = {imu.latitude_deg:g}: the swaying alignment "
-                "needs −85 … 85 degrees"
-            )
-        settings.update(latitude_deg=imu.latitude_deg, height_m=imu.height_m, simulate=None)
+        bench = config.load(args.config)
+        latitude = config.require_align(bench, "swaying", args.latitude)
+        imu = bench.imu
+        settings.update(latitude_deg=latitude, height_m=bench.site.height_m, simulate=None)
         window = sr.acquire(
             rd,
             imu_port=imu.port,
-            rate_hz=imu.rate_hz,
+            rate_hz=float(imu.rate_hz),
             baudrate=imu.baudrate,
             duration_s=duration,
             progress=_common.DeviceTimeProgress,
             settings=settings,
             configure_imu=True,
-            config_extra={"bench": imu.__dict__},
+            config_extra={"bench": {"imu": asdict(imu), "site": asdict(bench.site), "source": bench.source}},
         )
     t_read = time.monotonic()
     result = sr.finish(rd, window, json_path=args.json)

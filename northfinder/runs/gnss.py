@@ -28,11 +28,7 @@ Time alignment (IMU sample index ↔ GNSS time), docs/result-schema-align.md "##
 from __future__ import annotations
 
 import json
-import math
 import re
-import time
-import tomllib
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +39,7 @@ from northfinder.align.small_angle import align_gnss_small_angle
 from northfinder.codecs.kvh import KvhDecoder
 from northfinder.codecs.nmea import GnssFix, LocalEnu, checksum, fixes_to_arrays
 from northfinder.constants import wrap_deg_180
-from northfinder.errors import ConfigError, InputError
+from northfinder.errors import InputError
 from northfinder.report import report_axes, save_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
 from northfinder.runs import base
@@ -65,139 +61,8 @@ SMALL_ANGLE_HEADING_STD_DEG = 30.0
 
 
 # ---------------------------------------------------------------------------------------------
-# Configuration: [imu] and [gnss] of bench.toml (other tables are other commands')
+# Host receive stamps (written by northfinder.transport.StampedTransport) and the pure alignment
 # ---------------------------------------------------------------------------------------------
-@dataclass
-class ImuPort:
-    """`[imu]`: the KVH format-A IMU."""
-
-    port: str = ""
-    rate_hz: float = 1000.0
-    baudrate: int = 921600
-    rot_format: str = "DELTA"
-    rot_units: str = "RAD"
-
-
-@dataclass
-class GnssPort:
-    """`[gnss]`: the NMEA receiver and what the filter assumes about it."""
-
-    port: str = ""
-    baudrate: int = 115200
-    lever_arm_m: tuple[float, float, float] | None = None
-    """Antenna position in IMU body axes (x right, y forward, z up) [m], tape-measured."""
-    lever_arm_std_m: float = 0.3
-    """1σ of the tape-measured lever arm; without `lever_arm_m` the prior is 0 ± 1 m."""
-    pos_std_m: tuple[float, float, float] = (0.5, 0.5, 1.0)
-    vel_std_m_s: float = 0.05
-    latency_s: float = 0.0
-    """Receiver output latency (epoch → first byte) subtracted in the host time alignment."""
-
-
-@dataclass
-class GnssBench:
-    imu: ImuPort = field(default_factory=ImuPort)
-    gnss: GnssPort = field(default_factory=GnssPort)
-    source: str = "<defaults>"
-
-
-def _triple(key: str, value: Any, source: str) -> tuple[float, float, float]:
-    if not (
-        isinstance(value, list | tuple)
-        and len(value) == 3
-        and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value)
-    ):
-        raise ConfigError(f"{source}: {key} = {value!r}: use three numbers [x, y, z] in metres")
-    return (float(value[0]), float(value[1]), float(value[2]))
-
-
-def load_bench(path: str | Path) -> GnssBench:
-    """Parse `[imu]` and `[gnss]` of a bench TOML (one ConfigError line naming the key if wrong)."""
-    src = str(path)
-    try:
-        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"--config {src}: no such file") from None
-    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"--config {src}: cannot read it as TOML ({exc})") from None
-    bench = GnssBench(source=src)
-    imu, gnss = data.get("imu", {}), data.get("gnss", {})
-    for name, table in (("imu", imu), ("gnss", gnss)):
-        if not isinstance(table, dict):
-            raise ConfigError(f"{src}: {name} must be a table [{name}]")
-    allowed = {"port", "rate_hz", "baudrate", "rot_format", "rot_units"}
-    for key, value in imu.items():
-        if key not in allowed:
-            raise ConfigError(f"{src}: unknown key [imu] {key}; allowed: {', '.join(sorted(allowed))}")
-        setattr(bench.imu, key, value)
-    allowed = {"port", "baudrate", "lever_arm_m", "lever_arm_std_m", "pos_std_m", "vel_std_m_s", "latency_s"}
-    for key, value in gnss.items():
-        if key not in allowed:
-            raise ConfigError(f"{src}: unknown key [gnss] {key}; allowed: {', '.join(sorted(allowed))}")
-        if key in ("lever_arm_m", "pos_std_m"):
-            value = _triple(f"[gnss] {key}", value, src)
-        setattr(bench.gnss, key, value)
-    from northfinder.codecs import kvh
-
-    i, g = bench.imu, bench.gnss
-    if not isinstance(i.port, str) or not i.port:
-        raise ConfigError(f"{src}: [imu] port is missing; give the IMU's serial port")
-    if not isinstance(g.port, str) or not g.port:
-        raise ConfigError(f"{src}: [gnss] port is missing; give the GNSS receiver's serial port")
-    if i.port == g.port:
-        raise ConfigError(f"{src}: [imu] port and [gnss] port are both {i.port}; give each its own port")
-    if not isinstance(i.rate_hz, int | float) or int(i.rate_hz) not in kvh.RATES_HZ:
-        raise ConfigError(f"{src}: [imu] rate_hz = {i.rate_hz!r}: use one of {kvh.RATES_HZ}")
-    for key, v in (("[gnss] lever_arm_std_m", g.lever_arm_std_m), ("[gnss] vel_std_m_s", g.vel_std_m_s)):
-        if not isinstance(v, int | float) or not v > 0:
-            raise ConfigError(f"{src}: {key} = {v!r}: use a number greater than 0")
-    if not all(v > 0 for v in g.pos_std_m):
-        raise ConfigError(f"{src}: [gnss] pos_std_m = {list(g.pos_std_m)}: use three σ greater than 0")
-    if not isinstance(g.latency_s, int | float) or not 0 <= g.latency_s < 1:
-        raise ConfigError(f"{src}: [gnss] latency_s = {g.latency_s!r}: use 0 … 1 s")
-    return bench
-
-
-# ---------------------------------------------------------------------------------------------
-# Host receive stamps: a transport wrapper (one line per chunk) and the pure alignment from it
-# ---------------------------------------------------------------------------------------------
-class StampedTransport:
-    """A SerialTransport whose every received chunk is stamped with the host's monotonic clock.
-
-    Appends "host_s total_bytes" to `stamp_path` (flushed every `flush_s`, and at close), so the
-    arrival time of any byte of the raw log can be looked up afterwards.
-    """
-
-    def __init__(self, inner: Any, stamp_path: str | Path, flush_s: float = 0.5):
-        self._inner = inner
-        self.url = inner.url
-        self._fh = open(stamp_path, "w", encoding="ascii")  # noqa: SIM115 - closed in close()
-        self._total = 0
-        self._flush_s = flush_s
-        self._last_flush = time.monotonic()
-
-    def write(self, data: bytes) -> None:
-        self._inner.write(data)
-
-    def read_available(self, max_bytes: int = 1 << 16) -> bytes:
-        data = self._inner.read_available(max_bytes)
-        if data:
-            now = time.monotonic()
-            self._total += len(data)
-            self._fh.write(f"{now:.6f} {self._total}\n")
-            if now - self._last_flush >= self._flush_s:
-                self._fh.flush()
-                self._last_flush = now
-        return data
-
-    def close(self) -> None:
-        try:
-            self._inner.close()
-        finally:
-            if not self._fh.closed:
-                self._fh.close()
-
-
 def read_stamps(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(host_s, total_bytes) of a stamp file; a torn last line is ignored."""
     host, total = [], []
@@ -646,7 +511,6 @@ __all__ = [
     "GNSS_NMEA",
     "KIND",
     "compute_gnss_result",
-    "load_bench",
     "replay_gnss_run",
     "result_from_run",
     "time_alignment",

@@ -95,10 +95,10 @@ def utc_seconds(iso: str) -> float:
     return datetime.fromisoformat(iso.replace("Z", "+00:00")).astimezone(UTC).timestamp()
 
 
-def _stamped(device: str, port: str, baudrate: int, raw: Path, stamps: Path) -> gr.StampedTransport:
-    from northfinder.transport import SerialTransport
+def _stamped(device: str, port: str, baudrate: int, raw: Path, stamps: Path) -> Any:
+    from northfinder.transport import SerialTransport, StampedTransport
 
-    return gr.StampedTransport(
+    return StampedTransport(
         SerialTransport(port, device=device, baudrate=baudrate, timeout_s=0.05, raw_log=raw), stamps
     )
 

@@ -43,7 +43,7 @@ from northfinder.align.swaying import (
     velocity_increments_ib0,
 )
 from northfinder.constants import DEG, OMEGA_EARTH_RAD_S, STANDARD_GRAVITY_M_S2, wrap_deg_180
-from northfinder.errors import ConfigError, DeviceError, InputError
+from northfinder.errors import DeviceError, InputError
 from northfinder.report import report_axes, save_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
 from northfinder.runs import base
@@ -176,44 +176,6 @@ class ShipSimProcess(SimulatorProcess):
 
     required_endpoints = ("imu",)
     scenario_name = "ship"
-
-
-# ---------------------------------------------------------------------------------------------
-# Hardware: [imu] and [site] of bench.toml
-# ---------------------------------------------------------------------------------------------
-@dataclass
-class ImuSettings:
-    """The IMU port and what the run needs to know about the site."""
-
-    port: str
-    rate_hz: float = 1000.0
-    baudrate: int = 921600
-    latitude_deg: float = float("nan")
-    height_m: float = 0.0
-    source: str = ""
-
-
-def load_bench(path: str | Path, latitude_deg: float | None = None) -> ImuSettings:
-    """`[imu]` (port, rate_hz, baudrate) and `[site]` of a bench TOML through northfinder.config
-    (other tables are ignored); the latitude from `latitude_deg` if given, else from [site]."""
-    from northfinder import config as bench_config
-
-    cfg = bench_config.load(path)
-    if not cfg.imu.port:
-        raise ConfigError(f"{cfg.source}: [imu] port is missing; give the IMU's serial port")
-    lat = float(latitude_deg) if latitude_deg is not None else cfg.site.latitude_deg
-    if math.isnan(lat):
-        raise ConfigError(
-            f"{cfg.source}: [site] latitude_deg is missing; give the site's latitude (or --latitude DEG)"
-        )
-    return ImuSettings(
-        port=cfg.imu.port,
-        rate_hz=float(cfg.imu.rate_hz),
-        baudrate=int(cfg.imu.baudrate),
-        latitude_deg=lat,
-        height_m=float(cfg.site.height_m),
-        source=cfg.source,
-    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -579,7 +541,6 @@ __all__ = [
     "acquire",
     "compute_swaying_result",
     "finish",
-    "load_bench",
     "parse_sway",
     "replay_swaying_run",
     "result_from_run",
