@@ -24,7 +24,9 @@ itself, see `white_noise_density`) and optional bias priors through the fit (doc
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -301,6 +303,160 @@ def _angles(c_b_n: np.ndarray) -> np.ndarray:
     return np.array([h, p, r]) / DEG
 
 
+def _gls_whitening(
+    f_win: np.ndarray, m_win: np.ndarray, cov_phi: np.ndarray, cov_acc: np.ndarray, t_end: float, lat: float
+) -> np.ndarray:
+    """Σ_f^(−1/2) of the GLS step (docs/swaying.md §6): Σ_f = S_f Σ_φ S_fᵀ + Σ_acc, plus the cone
+    fit's residual power as white — sway that leaks through the smoothing is not noise, and the
+    weighting must not amplify it. Reused by every solve."""
+    m = f_win.shape[0]
+    s_f = _block_skew(f_win)
+    sigma_f = s_f @ cov_phi[: 3 * m, : 3 * m] @ s_f.T + cov_acc
+    c0, _ = _fit_cone(f_win, m_win, t_end, lat)
+    res0 = f_win - m_win @ _earth_rotation_n0_to_nt(t_end, lat).T @ c0
+    sigma_f += np.eye(3 * m) * np.mean(res0**2)
+    return np.linalg.inv(np.linalg.cholesky(sigma_f))
+
+
+def _solver(
+    method: str,
+    m_win: np.ndarray,
+    t_win: np.ndarray,
+    t_end: float,
+    lat: float,
+    whiten: np.ndarray | None,
+    c_b_ib0_end: np.ndarray,
+) -> Callable[..., tuple[np.ndarray, np.ndarray]]:
+    """solve(f, dφ_end) → (C_b^n at the end, Earth axis in i_b0): the method's fit (docs/swaying.md §4:
+    cone eq. 6–7, circle eq. 8, GLS eq. 9) on smoothed specific forces `f`, with an optional small attitude
+    error dφ_end at the end (C = C_ib0^nt (I − [dφ×]) C_b^ib0); the Jacobians perturb both."""
+
+    def solve(f: np.ndarray, dphi_end: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        if method == "circle":
+            c_ib0_nt, axis = _fit_circle(f, t_win, t_end, lat)
+        else:
+            c_ib0_nt, axis = _fit_cone(f, m_win, t_end, lat)
+            if method == "cone-gls":
+                c_ib0_nt, axis = _gls_step(f, m_win, c_ib0_nt, t_end, lat, whiten)
+        tweak = np.eye(3) if dphi_end is None else np.eye(3) - skew(dphi_end)
+        return c_ib0_nt @ tweak @ c_b_ib0_end, axis
+
+    return solve
+
+
+def _angle_cov_parts(
+    solve: Callable[..., tuple[np.ndarray, np.ndarray]],
+    f_win: np.ndarray,
+    residual: np.ndarray | None,
+    white: tuple[np.ndarray, np.ndarray],
+    cov_phi: np.ndarray,
+    cov_acc: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """Covariance of (heading, pitch, roll) by source, linearised through the fit (docs/swaying.md
+    §5): white noise, the turn-on bias priors (total minus white), and the sway leakage."""
+    g_map, jac_f = _jacobians(solve, f_win)
+    cov_leak = _leakage_covariance(residual, f_win, cov_phi, cov_acc)
+    return {
+        "white_noise": _angles_cov(g_map, jac_f, *white),
+        "bias_prior": _angles_cov(g_map, jac_f, cov_phi - white[0], cov_acc - white[1]),
+        "sway_leakage": jac_f @ cov_leak @ jac_f.T,
+    }
+
+
+def _diagnostics(
+    n: int,
+    n_lost: int,
+    rate_hz: float,
+    window_s: float,
+    n_windows: int,
+    n_gyro: np.ndarray,
+    n_acc: np.ndarray,
+    peak_dps: np.ndarray,
+    axis_elevation_deg: float,
+    residual: np.ndarray | None,
+    parts: dict[str, np.ndarray],
+) -> dict[str, Any]:
+    """What the solution was computed from (docs/swaying.md §5): samples, windows, the noise
+    densities measured from the data, the fit residual and the heading σ by source."""
+    return {
+        "n_samples": n,
+        "lost_samples_filled": n_lost,
+        "rate_hz": rate_hz,
+        "smoothing_window_s": window_s,
+        "n_windows": n_windows,
+        "gyro_arw_deg_rt_h": (n_gyro / DEG * 60.0).tolist(),
+        "accel_noise_ug_rt_hz": (n_acc / STANDARD_GRAVITY_M_S2 * 1e6).tolist(),
+        "gyro_peak_dps": peak_dps.tolist(),
+        "earth_axis_elevation_deg": axis_elevation_deg,
+        "fit_residual_rms_ug": (float(np.sqrt(np.mean(residual**2))) / STANDARD_GRAVITY_M_S2 * 1e6
+                                if residual is not None else None),
+        "heading_std_parts_deg": {k: float(np.sqrt(max(v[0, 0], 0.0))) for k, v in parts.items()},
+    }
+
+
+def _step2_windows(
+    q: np.ndarray, dtheta: np.ndarray, dv: np.ndarray, lw: int, dt: float, lat: float, g: float
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Step 2 (docs/swaying.md §3): velocity increments in i_b0, smoothed by Blackman–Harris windows
+    of `lw` samples at a hop of lw/4: (window starts, kernel, (f, M, t) of every window)."""
+    dv_ib0 = velocity_increments_ib0(q, dtheta, dv)
+    hop = max(1, lw // 4)
+    starts = np.arange(0, dv.shape[0] - lw + 1, hop)
+    h = _kernel(lw)
+    return starts, h, _smooth_windows(dv_ib0, starts, h, dt, lat, g)
+
+
+def _check_duration(duration_s: float, max_sway_period_s: float) -> None:
+    """The window must hold two smoothing windows (docs/swaying.md §3, `minimum_duration_s`)."""
+    t_min = minimum_duration_s(max_sway_period_s)
+    if duration_s < t_min:
+        raise InputError(
+            f"window of {duration_s:.1f} s is too short for the swaying alignment: it needs at least "
+            f"{t_min:.0f} s (two smoothing windows of 4 × the {max_sway_period_s:g} s longest sway period); "
+            "use 300 s for ~0.05° with a navigation-grade IMU")
+
+
+def _checked_inputs(
+    gyro: np.ndarray,
+    accel_g: np.ndarray,
+    rate_hz: float,
+    latitude_deg: float,
+    gyro_is_delta: bool,
+    status: np.ndarray | None,
+    method: str,
+    gyro_range_dps: float,
+    accel_range_g: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Refuse input that cannot give a meaningful heading (InputError saying why); the gyro as rates
+    [rad/s], the specific force [g] and each gyro axis's peak [°/s]."""
+    gyro = np.asarray(gyro, dtype=float)
+    accel_g = np.asarray(accel_g, dtype=float)
+    if gyro.ndim != 2 or gyro.shape[1] != 3 or accel_g.shape != gyro.shape:
+        raise InputError(f"swaying alignment needs gyro and accel arrays of shape [n,3]; got {gyro.shape} "
+                         f"and {accel_g.shape}")
+    if not rate_hz or rate_hz <= 0:
+        raise InputError(f"swaying alignment needs the IMU sample rate; got rate_hz={rate_hz}")
+    if method not in METHODS:
+        raise InputError(f"unknown swaying method '{method}': use one of {', '.join(METHODS)}")
+    if latitude_problem(latitude_deg):
+        raise InputError(f"latitude {latitude_deg:g}: {LATITUDE_ADVICE}")
+    _check_status(status)
+    if not np.all(np.isfinite(gyro)) or not np.all(np.isfinite(accel_g)):
+        raise InputError("IMU data contain NaN or infinite values: check the driver's decoding")
+    if not np.any(accel_g):
+        raise InputError("the IMU delivers no accelerometer data (all zero): the swaying alignment needs "
+                         "a 3-axis accelerometer — use a KVH 1750/1760/1775 with accelerometers")
+    rate = gyro if not gyro_is_delta else gyro / (1.0 / rate_hz)  # per-sample delta angles → rad/s
+    peak_dps = np.max(np.abs(rate), axis=0) / DEG
+    if np.any(peak_dps >= 0.999 * gyro_range_dps):
+        ax = "xyz"[int(np.argmax(peak_dps))]
+        raise InputError(f"gyro {ax} reached {peak_dps.max():.1f} °/s, the ±{gyro_range_dps:g} °/s range: "
+                         "the sway saturates the gyro — align in calmer sea or with a wider-range IMU")
+    if np.any(np.abs(accel_g) >= 0.999 * accel_range_g):
+        raise InputError(f"accelerometer reached the ±{accel_range_g:g} g range: the motion saturates it")
+    return rate, accel_g, peak_dps
+
+
 def align_swaying(
     gyro: np.ndarray,
     accel_g: np.ndarray,
@@ -330,115 +486,43 @@ def align_swaying(
     separated from north and are only added to the reported 1σ; 0 = white noise only).
     Raises InputError for input that cannot give a meaningful heading.
     """
-    gyro = np.asarray(gyro, dtype=float)
-    accel_g = np.asarray(accel_g, dtype=float)
-    if gyro.ndim != 2 or gyro.shape[1] != 3 or accel_g.shape != gyro.shape:
-        raise InputError(f"swaying alignment needs gyro and accel arrays of shape [n,3]; got {gyro.shape} "
-                         f"and {accel_g.shape}")
-    if not rate_hz or rate_hz <= 0:
-        raise InputError(f"swaying alignment needs the IMU sample rate; got rate_hz={rate_hz}")
-    if method not in METHODS:
-        raise InputError(f"unknown swaying method '{method}': use one of {', '.join(METHODS)}")
-    if latitude_problem(latitude_deg):
-        raise InputError(f"latitude {latitude_deg:g}: {LATITUDE_ADVICE}")
+    rate, accel_g, peak_dps = _checked_inputs(
+        gyro, accel_g, rate_hz, latitude_deg, gyro_is_delta, status, method, gyro_range_dps, accel_range_g
+    )
     dt = 1.0 / rate_hz
-    _check_status(status)
-    if not np.all(np.isfinite(gyro)) or not np.all(np.isfinite(accel_g)):
-        raise InputError("IMU data contain NaN or infinite values: check the driver's decoding")
-    if not np.any(accel_g):
-        raise InputError("the IMU delivers no accelerometer data (all zero): the swaying alignment needs "
-                         "a 3-axis accelerometer — use a KVH 1750/1760/1775 with accelerometers")
-    rate = gyro if not gyro_is_delta else gyro / dt
-    peak_dps = np.max(np.abs(rate), axis=0) / DEG
-    if np.any(peak_dps >= 0.999 * gyro_range_dps):
-        ax = "xyz"[int(np.argmax(peak_dps))]
-        raise InputError(f"gyro {ax} reached {peak_dps.max():.1f} °/s, the ±{gyro_range_dps:g} °/s range: "
-                         "the sway saturates the gyro — align in calmer sea or with a wider-range IMU")
-    if np.any(np.abs(accel_g) >= 0.999 * accel_range_g):
-        raise InputError(f"accelerometer reached the ±{accel_range_g:g} g range: the motion saturates it")
     n_lost = 0
     if sample_index is not None:
         rate, accel_g, n_lost = _fill_gaps(np.asarray(sample_index), rate, accel_g)
     n = rate.shape[0]
     duration_s = n * dt
-    t_min = minimum_duration_s(max_sway_period_s)
-    if duration_s < t_min:
-        raise InputError(
-            f"window of {duration_s:.1f} s is too short for the swaying alignment: it needs at least "
-            f"{t_min:.0f} s (two smoothing windows of 4 × the {max_sway_period_s:g} s longest sway period); "
-            "use 300 s for ~0.05° with a navigation-grade IMU")
-
+    _check_duration(duration_s, max_sway_period_s)
     lat = latitude_deg * DEG
     g = float(normal_gravity_m_s2(latitude_deg, height_m))
     dtheta = rate * dt
     dv = accel_g * (STANDARD_GRAVITY_M_S2 * dt)
-
-    # Step 1: C_b^{i_b0}(t_k), k = 0…n.
-    q = attitude_quaternions(dtheta)
-    # Step 2: velocity increments in i_b0, smoothed by Blackman–Harris windows (hop L_w/4).
-    dv_ib0 = velocity_increments_ib0(q, dtheta, dv)
+    q = attitude_quaternions(dtheta)  # Step 1: C_b^{i_b0}(t_k), k = 0…n (docs/swaying.md §2)
     lw = int(round(_BH4_MAIN_LOBE_BINS * max_sway_period_s * rate_hz))
-    hop = max(1, lw // 4)
-    starts = np.arange(0, n - lw + 1, hop)
-    h = _kernel(lw)
-    f_win, m_win, t_win = _smooth_windows(dv_ib0, starts, h, dt, lat, g)
+    starts, h, (f_win, m_win, t_win) = _step2_windows(q, dtheta, dv, lw, dt, lat, g)
     t_end = duration_s
     c_b_ib0_end = quat_to_dcm(q[-1])
-
-    # Noise measured from the data (docs/swaying.md §5): it weights the GLS step and gives the 1σ.
+    # noise measured from the data (docs/swaying.md §5): it weights the GLS step and gives the 1σ
     n_gyro = white_noise_density(dtheta, dt)  # rad/√s per body axis
     n_acc = white_noise_density(dv, dt)  # m/s/√s per body axis
     cov_phi, cov_acc = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc,
                                           gyro_bias_dph * DPH, accel_bias_ug * 1e-6 * STANDARD_GRAVITY_M_S2)
-    m = f_win.shape[0]
-    if method == "cone-gls":
-        s_f = _block_skew(f_win)
-        sigma_f = s_f @ cov_phi[: 3 * m, : 3 * m] @ s_f.T + cov_acc
-        # Sway that leaks through the smoothing is not noise: treat the cone fit's residual power
-        # as white so that the weighting cannot amplify it (docs/swaying.md §6).
-        c0, _ = _fit_cone(f_win, m_win, t_end, lat)
-        res0 = f_win - m_win @ _earth_rotation_n0_to_nt(t_end, lat).T @ c0
-        sigma_f += np.eye(3 * m) * np.mean(res0**2)
-        whiten = np.linalg.inv(np.linalg.cholesky(sigma_f))  # Σ^(−1/2), reused by every solve
-
-    def solve(f, dphi_end=None):
-        if method == "circle":
-            c_ib0_nt, axis = _fit_circle(f, t_win, t_end, lat)
-        else:
-            c_ib0_nt, axis = _fit_cone(f, m_win, t_end, lat)
-            if method == "cone-gls":
-                c_ib0_nt, axis = _gls_step(f, m_win, c_ib0_nt, t_end, lat, whiten)
-        tweak = np.eye(3) if dphi_end is None else np.eye(3) - skew(dphi_end)
-        c_b_n = c_ib0_nt @ tweak @ c_b_ib0_end
-        return c_b_n, axis
-
+    whiten = _gls_whitening(f_win, m_win, cov_phi, cov_acc, t_end, lat) if method == "cone-gls" else None
+    solve = _solver(method, m_win, t_win, t_end, lat, whiten, c_b_ib0_end)
     c_b_n, axis = solve(f_win)
     angles = _angles(c_b_n)
     residual = f_win - (c_b_ib0_end @ c_b_n.T @ _earth_rotation_n0_to_nt(t_end, lat) @ m_win.T).T \
         if method != "circle" else None
-    g_map, jac_f = _jacobians(solve, f_win)
     white = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, 0.0, 0.0)
-    cov_leak = _leakage_covariance(residual, f_win, cov_phi, cov_acc)
-    parts = {
-        "white_noise": _angles_cov(g_map, jac_f, *white),
-        "bias_prior": _angles_cov(g_map, jac_f, cov_phi - white[0], cov_acc - white[1]),
-        "sway_leakage": jac_f @ cov_leak @ jac_f.T,
-    }
+    parts = _angle_cov_parts(solve, f_win, residual, white, cov_phi, cov_acc)
     std = np.sqrt(np.maximum(np.diag(sum(parts.values())), 0.0))
-    diag = {
-        "n_samples": n,
-        "lost_samples_filled": n_lost,
-        "rate_hz": rate_hz,
-        "smoothing_window_s": lw * dt,
-        "n_windows": len(starts),
-        "gyro_arw_deg_rt_h": (n_gyro / DEG * 60.0).tolist(),
-        "accel_noise_ug_rt_hz": (n_acc / STANDARD_GRAVITY_M_S2 * 1e6).tolist(),
-        "gyro_peak_dps": peak_dps.tolist(),
-        "earth_axis_elevation_deg": float(np.arcsin(np.clip(axis @ c_b_ib0_end @ c_b_n[2], -1, 1)) / DEG),
-        "fit_residual_rms_ug": (float(np.sqrt(np.mean(residual**2))) / STANDARD_GRAVITY_M_S2 * 1e6
-                                if residual is not None else None),
-        "heading_std_parts_deg": {k: float(np.sqrt(max(v[0, 0], 0.0))) for k, v in parts.items()},
-    }
+    diag = _diagnostics(
+        n, n_lost, rate_hz, lw * dt, len(starts), n_gyro, n_acc, peak_dps,
+        float(np.arcsin(np.clip(axis @ c_b_ib0_end @ c_b_n[2], -1, 1)) / DEG), residual, parts,
+    )
     return SwayingSolution(
         heading_deg=float(angles[0]),
         heading_std_deg=float(std[0]),
