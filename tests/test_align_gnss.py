@@ -334,3 +334,26 @@ def test_the_summary_says_which_start_was_used():
     )
     unknown = start_text({"initial_heading_deg": 0.0, "initial_heading_std_deg": None})
     assert unknown.startswith("heading unknown")
+
+
+def test_the_summary_counts_converged_and_below_1deg_from_the_same_start(e2e_run):
+    """'converged after' (result: from the filter start) and '<1° after' (from the first IMU sample)
+    are printed from the same start, the first IMU sample, and the summary says so: the converged
+    time shown is the result's plus filter_start_s (the levelling), for both filters."""
+    from rich.console import Console
+
+    from northfinder.cli.align_gnss import print_summary
+
+    _, _, result, _ = e2e_run
+    assert result["filter_start_s"] >= 5.0  # the levelling is counted in the shift
+    console = Console(record=True, width=160)
+    print_summary(result, console=console)
+    text = console.export_text()
+    shown = result["converged_after_s"] + result["filter_start_s"]
+    assert f"converged after  {shown:.1f} s (1σ < 1° from then on; from the first IMU sample" in text
+    assert "times from the first IMU sample" in text
+    rows = {line.split("│")[1].strip(" *"): line for line in text.splitlines() if line.count("│") == 8}
+    for name, m in result["methods"].items():
+        cells = [c.strip() for c in rows[name].split("│")[1:-1]]
+        assert float(cells[3]) == pytest.approx(m["converged_after_s"] + result["filter_start_s"], abs=0.051)
+        assert float(cells[5]) == pytest.approx(m["time_below_1deg_s"], abs=0.051)

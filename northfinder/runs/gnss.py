@@ -218,6 +218,106 @@ def _time_below(t: np.ndarray, err: np.ndarray, thr: float) -> float | None:
     return float(t[bad[-1] + 1] if len(bad) else t[0])
 
 
+def _initial_heading(flt: dict[str, Any], truth_start_deg: float | None) -> float:
+    """The filters' start heading ψ0: --heading (a prior), the simulator's truth at the start +
+    --heading-error, else 0° (unknown: the sin/cos filter's uniform prior ignores it)."""
+    initial = flt.get("initial_heading_deg")
+    if flt.get("heading_error_deg") is not None:
+        if truth_start_deg is None:
+            raise InputError(
+                "--heading-error needs the simulator's truth log (the truth heading at the start)"
+            )
+        initial = (truth_start_deg + float(flt["heading_error_deg"])) % 360.0
+    return float(initial if initial is not None else 0.0)
+
+
+def _both_filters(
+    imu: ImuSeries, gnss: GnssSeries, psi0: float, flt: dict[str, Any]
+) -> tuple[GnssAlignResult, GnssAlignResult]:
+    """The sin/cos heading filter (the result) and the small-angle filter, on the same data."""
+    heading_std = flt.get("heading_std_deg")
+    cfg = GnssAlignConfig(
+        heading_std_deg=heading_std,
+        lever_arm_b_m=tuple(flt["lever_arm_prior_m"]),
+        lever_arm_std_m=float(flt["lever_arm_std_m"]),
+    )
+    main = align_gnss(imu, gnss, psi0, cfg)
+    small_cfg = GnssAlignConfig(
+        **{**cfg.__dict__, "heading_std_deg": heading_std or SMALL_ANGLE_HEADING_STD_DEG}
+    )
+    return main, align_gnss_small_angle(imu, gnss, psi0, small_cfg)
+
+
+def _add_truth(
+    result: dict[str, Any],
+    hist: dict[str, Any],
+    truth: TruthLog,
+    main: GnssAlignResult,
+    small: GnssAlignResult,
+    gnss_origin: Any,
+    t_start_imu: float,
+    truth_start: float | None,
+) -> None:
+    """A simulated run: the truth at the last update, each filter's error and its time below 1° and
+    0.5° (from the first IMU sample), the position and lever-arm errors."""
+    h = main.history
+    t_last = float(h.t_s[-1])
+    truth_end = float(truth.heading_at(t_last))
+    result["truth"] = {
+        "heading_deg": truth_end,
+        "heading_at_start_deg": truth_start,
+        "pitch_deg": float(truth.at(t_last, "pitch_deg")),
+        "roll_deg": float(truth.at(t_last, "roll_deg")),
+        "lever_arm_m": truth.lever_arm_m,
+        "t_device_s": t_last,
+    }
+    result["error_deg"] = float(wrap_deg_180(main.heading_deg - truth_end))
+    result["methods"][main.method]["error_deg"] = result["error_deg"]
+    result["methods"]["small_angle"]["error_deg"] = float(wrap_deg_180(small.heading_deg - truth_end))
+    err = np.asarray(wrap_deg_180(h.heading_deg - truth.heading_at(h.t_s)), dtype=float)
+    s_err = np.asarray(
+        wrap_deg_180(small.history.heading_deg - truth.heading_at(small.history.t_s)), dtype=float
+    )
+    hist["error_deg"], hist["small_error_deg"] = err, s_err
+    for name, t_arr, e in ((main.method, h.t_s, err), ("small_angle", small.history.t_s, s_err)):
+        m = result["methods"][name]
+        for thr, key in ((1.0, "time_below_1deg_s"), (0.5, "time_below_0p5deg_s")):
+            tb = _time_below(t_arr, e, thr)
+            m[key] = None if tb is None else tb - t_start_imu
+    if truth.origin is not None and np.isfinite(truth.pos_enu_m).all():
+        _add_position_error(result, hist, truth, h, gnss_origin, t_start_imu, main.method)
+    if truth.lever_arm_m is not None:
+        result["lever_arm_error_m"] = float(
+            np.linalg.norm(main.lever_arm_m - np.asarray(truth.lever_arm_m))
+        )
+
+
+def _add_position_error(
+    result: dict[str, Any],
+    hist: dict[str, Any],
+    truth: TruthLog,
+    h: Any,
+    gnss_origin: Any,
+    t_start_imu: float,
+    method: str,
+) -> None:
+    """The IMU position error against the truth (in the run's GNSS origin), at the end and at worst
+    once the heading error stayed below 1°."""
+    site = LocalEnu(*truth.origin)
+    lat, lon, hh = site.from_enu(truth.at(h.t_s, "pos_enu_m"))
+    true_enu = LocalEnu(*gnss_origin).to_enu(lat, lon, hh).reshape(-1, 3)
+    perr = h.pos_enu_m - true_enu
+    hist["position_error_m"] = np.linalg.norm(perr, axis=1)
+    result["position_error_m"] = float(hist["position_error_m"][-1])
+    result["position_error_horizontal_m"] = float(np.hypot(perr[-1, 0], perr[-1, 1]))
+    t_1deg = result["methods"][method]["time_below_1deg_s"]
+    if t_1deg is not None:  # converged in truth: |heading error| < 1° from then on
+        after = h.t_s - t_start_imu >= t_1deg - 1e-9
+        result["position_error_max_after_convergence_m"] = float(
+            hist["position_error_m"][after].max()
+        )
+
+
 def compute_gnss_result(
     imu_block: Any,
     fixes: list[GnssFix],
@@ -248,28 +348,10 @@ def compute_gnss_result(
     t_start_imu = imu.t0_s
     t_end_imu = t0_index0_s + (float(idx[-1]) + 1.0) / rate
     check_still_start(fixes, gnss.t_s, t_start_imu, GnssAlignConfig.level_s)
-    initial = flt.get("initial_heading_deg")
-    truth_start = truth_end = None
-    if truth is not None:
-        truth_start = float(truth.heading_at(t_start_imu))
-    if flt.get("heading_error_deg") is not None:
-        if truth_start is None:
-            raise InputError(
-                "--heading-error needs the simulator's truth log (the truth heading at the start)"
-            )
-        initial = (truth_start + float(flt["heading_error_deg"])) % 360.0
+    truth_start = float(truth.heading_at(t_start_imu)) if truth is not None else None
+    psi0 = _initial_heading(flt, truth_start)
     heading_std = flt.get("heading_std_deg")
-    cfg = GnssAlignConfig(
-        heading_std_deg=heading_std,
-        lever_arm_b_m=tuple(flt["lever_arm_prior_m"]),
-        lever_arm_std_m=float(flt["lever_arm_std_m"]),
-    )
-    psi0 = float(initial if initial is not None else 0.0)
-    main = align_gnss(imu, gnss, psi0, cfg)
-    small_cfg = GnssAlignConfig(
-        **{**cfg.__dict__, "heading_std_deg": heading_std or SMALL_ANGLE_HEADING_STD_DEG}
-    )
-    small = align_gnss_small_angle(imu, gnss, psi0, small_cfg)
+    main, small = _both_filters(imu, gnss, psi0, flt)
     h = main.history
     t_last = float(h.t_s[-1])
     result: dict[str, Any] = {
@@ -314,46 +396,7 @@ def compute_gnss_result(
         "small_heading_deg": small.history.heading_deg,
     }
     if truth is not None:
-        truth_end = float(truth.heading_at(t_last))
-        result["truth"] = {
-            "heading_deg": truth_end,
-            "heading_at_start_deg": truth_start,
-            "pitch_deg": float(truth.at(t_last, "pitch_deg")),
-            "roll_deg": float(truth.at(t_last, "roll_deg")),
-            "lever_arm_m": truth.lever_arm_m,
-            "t_device_s": t_last,
-        }
-        result["error_deg"] = float(wrap_deg_180(main.heading_deg - truth_end))
-        result["methods"][main.method]["error_deg"] = result["error_deg"]
-        result["methods"]["small_angle"]["error_deg"] = float(wrap_deg_180(small.heading_deg - truth_end))
-        err = np.asarray(wrap_deg_180(h.heading_deg - truth.heading_at(h.t_s)), dtype=float)
-        s_err = np.asarray(
-            wrap_deg_180(small.history.heading_deg - truth.heading_at(small.history.t_s)), dtype=float
-        )
-        hist["error_deg"], hist["small_error_deg"] = err, s_err
-        for name, t_arr, e in ((main.method, h.t_s, err), ("small_angle", small.history.t_s, s_err)):
-            m = result["methods"][name]
-            for thr, key in ((1.0, "time_below_1deg_s"), (0.5, "time_below_0p5deg_s")):
-                tb = _time_below(t_arr, e, thr)
-                m[key] = None if tb is None else tb - t_start_imu
-        if truth.origin is not None and np.isfinite(truth.pos_enu_m).all():
-            site = LocalEnu(*truth.origin)
-            lat, lon, hh = site.from_enu(truth.at(h.t_s, "pos_enu_m"))
-            true_enu = LocalEnu(*gnss.origin).to_enu(lat, lon, hh).reshape(-1, 3)
-            perr = h.pos_enu_m - true_enu
-            hist["position_error_m"] = np.linalg.norm(perr, axis=1)
-            result["position_error_m"] = float(hist["position_error_m"][-1])
-            result["position_error_horizontal_m"] = float(np.hypot(perr[-1, 0], perr[-1, 1]))
-            t_1deg = result["methods"][main.method]["time_below_1deg_s"]
-            if t_1deg is not None:  # converged in truth: |heading error| < 1° from then on
-                after = h.t_s - t_start_imu >= t_1deg - 1e-9
-                result["position_error_max_after_convergence_m"] = float(
-                    hist["position_error_m"][after].max()
-                )
-        if truth.lever_arm_m is not None:
-            result["lever_arm_error_m"] = float(
-                np.linalg.norm(main.lever_arm_m - np.asarray(truth.lever_arm_m))
-            )
+        _add_truth(result, hist, truth, main, small, gnss.origin, t_start_imu, truth_start)
     return result, hist
 
 
