@@ -260,7 +260,14 @@ def _validate(cfg: BenchConfig) -> None:
         if not ok:
             raise _bad(key, value, allowed, s)
 
-    t, i, a, site, r, e = cfg.turntable, cfg.imu, cfg.accelerometer, cfg.site, cfg.run, cfg.estimator
+    _validate_devices(cfg, need)
+    _validate_site_run(cfg, need)
+    _validate_align(cfg, need)
+
+
+def _validate_devices(cfg: BenchConfig, need: Callable[[bool, str, Any, str], None]) -> None:
+    """The ranges of [turntable], [imu] and [accelerometer]."""
+    t, i, a = cfg.turntable, cfg.imu, cfg.accelerometer
     need(1 <= t.address <= 31, "[turntable] address", t.address, "use 1…31")
     need(t.baudrate > 0, "[turntable] baudrate", t.baudrate, "use a positive baud rate")
     need(math.isfinite(t.speed_deg_s) and t.speed_deg_s >= 0, "[turntable] speed_deg_s", t.speed_deg_s,
@@ -297,6 +304,11 @@ def _validate(cfg: BenchConfig) -> None:
     need(_is_object(a.rate_object), "[accelerometer] rate_object", a.rate_object,
          "name an object as INDEX:SUB in hex, e.g. 2100:0 or 1800:5")
     need(0 <= a.heartbeat_ms <= 0xFFFF, "[accelerometer] heartbeat_ms", a.heartbeat_ms, "use 0…65535")
+
+
+def _validate_site_run(cfg: BenchConfig, need: Callable[[bool, str, Any, str], None]) -> None:
+    """The ranges of [site] (the turntable find's latitude limit), [run] and [estimator]."""
+    site, r, e = cfg.site, cfg.run, cfg.estimator
     lim = MAX_ABS_LATITUDE_DEG
     if not math.isnan(site.latitude_deg):
         need(
@@ -339,7 +351,6 @@ def _validate(cfg: BenchConfig) -> None:
         "use a rate greater than 0 deg/h",
     )
     need(e.method in METHODS, "[estimator] method", e.method, f"use one of {', '.join(METHODS)}")
-    _validate_align(cfg, need)
 
 
 def _validate_align(cfg: BenchConfig, need: Callable[[bool, str, Any, str], None]) -> None:

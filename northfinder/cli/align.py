@@ -11,6 +11,19 @@ import importlib
 
 from northfinder.errors import InputError
 
+DESCRIPTION = """\
+Find true north with a strapdown IMU and no turntable, in one of two modes:
+
+  --mode swaying  the IMU alone on a swaying base (a ship at anchor): gyrocompassing on the
+                  inertial-frame cone of gravity (docs/swaying.md); needs the site latitude.
+  --mode gnss     the IMU and an NMEA GNSS receiver on a vehicle that starts standing still and
+                  then drives: a GNSS/INS filter with a sin/cos heading state (docs/gnss-alignment.md).
+
+Real hardware: --config BENCH_TOML ([imu], [site] or [gnss]; docs/bench.example.toml).
+Simulated: --simulate starts firmware-sim (flags --grade, --seed, --time-scale, --fault).
+Every run writes a run directory (--out) that `northfinder replay RUN_DIR` recomputes bit for bit.
+"""
+
 MODES = {"swaying": "northfinder.cli.align_swaying", "gnss": "northfinder.cli.align_gnss"}
 
 
@@ -24,8 +37,17 @@ def _mode_module(mode: str):
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("align", help="align a strapdown IMU: on a swaying base or GNSS-aided on the move")
-    p.add_argument("--mode", choices=sorted(MODES), required=True)
+    from northfinder.runs.gnss_live import SIM_DEFAULT_TIME_SCALE as gnss_k
+    from northfinder.runs.swaying import SIM_DEFAULT_TIME_SCALE as sway_k
+
+    p = sub.add_parser(
+        "align",
+        help="align a strapdown IMU: on a swaying base or GNSS-aided on the move",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--mode", choices=sorted(MODES), required=True,
+                   help="swaying: gyrocompass on a swaying base (IMU alone); gnss: GNSS-aided, on the move")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="alignment window [device s]")
     p.add_argument("--json", metavar="PATH", help="write the result JSON here")
     p.add_argument("--out", metavar="RUN_DIR", help="run directory for raw logs and the report")
@@ -34,8 +56,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--simulate", action="store_true", help="start firmware-sim and align on it")
     p.add_argument("--grade", default=None,
                    help="simulated sensor grade (nav, kvh1760, tactical-mems, consumer)")
-    p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--time-scale", type=float, default=None, metavar="K")
+    p.add_argument("--seed", type=int, default=None,
+                   help="simulator noise seed (default 1): the same seed gives the same sensor noise")
+    p.add_argument("--time-scale", type=float, default=None, metavar="K",
+                   help=f"simulated device time runs K× the wall clock (default: {sway_k:g} swaying, "
+                   f"{gnss_k:g} gnss)")
     p.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
                    help="pass a fault to firmware-sim (repeatable)")
     for mode in MODES:

@@ -22,6 +22,7 @@ from northfinder.cli import _common
 from northfinder.errors import InputError
 from northfinder.history import record_or_warn
 from northfinder.rundir import RunDir
+from northfinder.runs import base
 from northfinder.runs import gnss as gr
 from northfinder.runs import gnss_live as live
 
@@ -163,79 +164,98 @@ def default_out() -> Path:
     return _common.default_out(gr.KIND)
 
 
-def run(args: argparse.Namespace) -> int:
-    duration = _check(args)
-    prior_heading, prior_std = heading_prior(args)
+def _simulated_window(args: argparse.Namespace, rd: RunDir, duration: float, prior_std: float | None) -> Any:
+    """firmware-sim's vehicle as a subprocess, read for `duration` device seconds; the simulator has
+    stopped (its truth log is complete) before the filters take the CPU."""
     lever = parse_lever_arm(args.lever_arm)
-    rd = RunDir(args.out or default_out())
-    t_wall = time.monotonic()
-    if args.simulate:
-        sim = live.VehicleSim(
-            lever_arm_m=lever or live.SIM_LEVER_ARM_M,
-            grade=args.grade or "kvh1760",
-            seed=1 if args.seed is None else args.seed,
-            time_scale=args.time_scale or live.SIM_DEFAULT_TIME_SCALE,
-            latitude_deg=getattr(args, "latitude", None),
-            heading_deg=getattr(args, "heading", None),
-            faults=tuple(args.fault),
-            truth_log=str((rd.path / gr.TRUTH_LOG).resolve()),
-        )
-        settings = {
-            "initial_heading_deg": args.initial_heading,
-            "heading_std_deg": prior_std,
-            "heading_error_deg": args.heading_error,
-            "lever_arm_prior_m": [0.0, 0.0, 0.0],  # the filter is not told the simulator's lever arm
-            "lever_arm_std_m": UNKNOWN_LEVER_ARM_STD_M,
-            "pos_std_m": [0.5, 0.5, 1.0],
-            "vel_std_m_s": 0.05,
-        }
-        with live.VehicleSimProcess(sim) as endpoints:
-            window = live.acquire(
-                rd,
-                imu_port=str(endpoints["imu"]),
-                gnss_port=str(endpoints["gnss"]),
-                imu_rate_hz=float(endpoints.get("imu_rate_hz", sim.imu_rate_hz)),
-                rot_format=str(endpoints.get("imu_rot_format", "DELTA")),
-                rot_units="RAD",
-                duration_s=duration,
-                progress=_common.DeviceTimeProgress,
-                filter_settings=settings,
-                simulate=sim.to_dict(),
-                gnss_start_utc=str(endpoints.get("gnss_start_utc")),
-                time_scale=sim.time_scale,
-                config_extra={"endpoints": endpoints},
-            )
-        # the simulator has stopped (its truth log is complete) before the filters take the CPU
-    else:
-        bench = config.load(args.config)
-        config.require_align(bench, "gnss")
-        g = bench.gnss
-        prior = lever or g.lever_arm_m
-        settings = {
-            "initial_heading_deg": prior_heading,
-            "heading_std_deg": prior_std,
-            "heading_error_deg": None,
-            "lever_arm_prior_m": list(prior) if prior is not None else [0.0, 0.0, 0.0],
-            "lever_arm_std_m": g.lever_arm_std_m if prior is not None else UNKNOWN_LEVER_ARM_STD_M,
-            "pos_std_m": list(g.pos_std_m),
-            "vel_std_m_s": g.vel_std_m_s,
-        }
-        window = live.acquire(
+    sim = live.VehicleSim(
+        lever_arm_m=lever or live.SIM_LEVER_ARM_M,
+        grade=args.grade or "kvh1760",
+        seed=1 if args.seed is None else args.seed,
+        time_scale=args.time_scale or live.SIM_DEFAULT_TIME_SCALE,
+        latitude_deg=getattr(args, "latitude", None),
+        heading_deg=getattr(args, "heading", None),
+        faults=tuple(args.fault),
+        truth_log=str((rd.path / gr.TRUTH_LOG).resolve()),
+    )
+    settings = {
+        "initial_heading_deg": args.initial_heading,
+        "heading_std_deg": prior_std,
+        "heading_error_deg": args.heading_error,
+        "lever_arm_prior_m": [0.0, 0.0, 0.0],  # the filter is not told the simulator's lever arm
+        "lever_arm_std_m": UNKNOWN_LEVER_ARM_STD_M,
+        "pos_std_m": [0.5, 0.5, 1.0],
+        "vel_std_m_s": 0.05,
+    }
+    with live.VehicleSimProcess(sim) as endpoints:
+        return live.acquire(
             rd,
-            imu_port=bench.imu.port,
-            gnss_port=g.port,
-            imu_rate_hz=float(bench.imu.rate_hz),
-            rot_format=bench.imu.rot_format,
-            rot_units=bench.imu.rot_units,
+            imu_port=str(endpoints["imu"]),
+            gnss_port=str(endpoints["gnss"]),
+            imu_rate_hz=float(endpoints.get("imu_rate_hz", sim.imu_rate_hz)),
+            rot_format=str(endpoints.get("imu_rot_format", "DELTA")),
+            rot_units="RAD",
             duration_s=duration,
             progress=_common.DeviceTimeProgress,
             filter_settings=settings,
-            imu_baudrate=bench.imu.baudrate,
-            gnss_baudrate=g.baudrate,
-            configure_imu=True,
-            gnss_latency_s=g.latency_s,
-            config_extra={"bench": {"imu": asdict(bench.imu), "gnss": asdict(g), "source": bench.source}},
+            simulate=sim.to_dict(),
+            gnss_start_utc=str(endpoints.get("gnss_start_utc")),
+            time_scale=sim.time_scale,
+            config_extra={"endpoints": endpoints},
         )
+
+
+def _bench_window(
+    args: argparse.Namespace,
+    rd: RunDir,
+    duration: float,
+    prior_heading: float | None,
+    prior_std: float | None,
+) -> Any:
+    """The IMU and GNSS receiver of the bench file ([imu], [gnss]: northfinder.config, one validation)."""
+    lever = parse_lever_arm(args.lever_arm)
+    bench = config.load(args.config)
+    config.require_align(bench, "gnss")
+    g = bench.gnss
+    prior = lever or g.lever_arm_m
+    settings = {
+        "initial_heading_deg": prior_heading,
+        "heading_std_deg": prior_std,
+        "heading_error_deg": None,
+        "lever_arm_prior_m": list(prior) if prior is not None else [0.0, 0.0, 0.0],
+        "lever_arm_std_m": g.lever_arm_std_m if prior is not None else UNKNOWN_LEVER_ARM_STD_M,
+        "pos_std_m": list(g.pos_std_m),
+        "vel_std_m_s": g.vel_std_m_s,
+    }
+    return live.acquire(
+        rd,
+        imu_port=bench.imu.port,
+        gnss_port=g.port,
+        imu_rate_hz=float(bench.imu.rate_hz),
+        rot_format=bench.imu.rot_format,
+        rot_units=bench.imu.rot_units,
+        duration_s=duration,
+        progress=_common.DeviceTimeProgress,
+        filter_settings=settings,
+        imu_baudrate=bench.imu.baudrate,
+        gnss_baudrate=g.baudrate,
+        configure_imu=True,
+        gnss_latency_s=g.latency_s,
+        config_extra={"bench": {"imu": asdict(bench.imu), "gnss": asdict(g), "source": bench.source}},
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    duration = _check(args)
+    prior_heading, prior_std = heading_prior(args)
+    parse_lever_arm(args.lever_arm)
+    rd = RunDir(args.out or default_out())
+    t_wall = time.monotonic()
+    with base.removed_if_unstarted(rd, gr.OWN_FILES):  # a failed start leaves no empty directory
+        if args.simulate:
+            window = _simulated_window(args, rd, duration, prior_std)
+        else:
+            window = _bench_window(args, rd, duration, prior_heading, prior_std)
     t_read = time.monotonic()
     result = live.finish(rd, window, json_path=args.json)
     record_or_warn(rd.path, unit=getattr(args, "unit", None))  # the results history (an index)

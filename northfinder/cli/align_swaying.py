@@ -25,6 +25,7 @@ from northfinder.cli import _common
 from northfinder.errors import InputError
 from northfinder.history import record_or_warn
 from northfinder.rundir import RunDir
+from northfinder.runs import base
 from northfinder.runs import swaying as sr
 
 
@@ -146,6 +147,54 @@ def _preload_matplotlib() -> None:
     import matplotlib.pyplot  # noqa: F401
 
 
+def _simulated_window(
+    args: argparse.Namespace, rd: RunDir, duration: float, sway: dict[str, Any], settings: dict[str, Any]
+) -> Any:
+    """firmware-sim's swaying ship as a subprocess, read for `duration` device seconds; the simulator
+    has stopped (its truth log is complete) before the estimator takes the CPU."""
+    sim = sr.ShipSim(
+        sway=sr.format_sway(sway),
+        lever_arm_m=parse_lever_arm(args.lever_arm) or sr.SIM_LEVER_ARM_M,
+        heading_deg=sr.SIM_HEADING_DEG if args.heading is None else float(args.heading),
+        latitude_deg=sr.SIM_LATITUDE_DEG if args.latitude is None else float(args.latitude),
+        grade=args.grade or "nav",
+        seed=1 if args.seed is None else int(args.seed),
+        time_scale=args.time_scale or sr.SIM_DEFAULT_TIME_SCALE,
+        faults=tuple(args.fault),
+        truth_log=str((rd.path / sr.TRUTH_LOG).resolve()),
+    )
+    settings.update(latitude_deg=sim.latitude_deg, height_m=0.0, simulate=sim.to_dict())
+    with sr.ShipSimProcess(sim) as endpoints:  # type: ignore[arg-type]
+        return sr.acquire(
+            rd,
+            imu_port=str(endpoints["imu"]),
+            rate_hz=1000.0,
+            duration_s=duration,
+            progress=_common.DeviceTimeProgress,
+            settings=settings,
+            config_extra={"endpoints": endpoints},
+        )
+
+
+def _bench_window(args: argparse.Namespace, rd: RunDir, duration: float, settings: dict[str, Any]) -> Any:
+    """The IMU of the bench file ([imu], [site]: northfinder.config, one validation; --latitude wins)."""
+    bench = config.load(args.config)
+    latitude = config.require_align(bench, "swaying", args.latitude)
+    imu = bench.imu
+    settings.update(latitude_deg=latitude, height_m=bench.site.height_m, simulate=None)
+    return sr.acquire(
+        rd,
+        imu_port=imu.port,
+        rate_hz=float(imu.rate_hz),
+        baudrate=imu.baudrate,
+        duration_s=duration,
+        progress=_common.DeviceTimeProgress,
+        settings=settings,
+        configure_imu=True,
+        config_extra={"bench": {"imu": asdict(imu), "site": asdict(bench.site), "source": bench.source}},
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     duration, sway, period = _check(args)
     rd = RunDir(args.out or default_out())
@@ -153,46 +202,11 @@ def run(args: argparse.Namespace) -> int:
     # matplotlib takes a second or two to import: do it while the simulator or the IMU port starts
     threading.Thread(target=_preload_matplotlib, name="preload-matplotlib", daemon=True).start()
     settings: dict[str, Any] = {"method": args.method or "cone", "max_sway_period_s": period}
-    if args.simulate:
-        sim = sr.ShipSim(
-            sway=sr.format_sway(sway),
-            lever_arm_m=parse_lever_arm(args.lever_arm) or sr.SIM_LEVER_ARM_M,
-            heading_deg=sr.SIM_HEADING_DEG if args.heading is None else float(args.heading),
-            latitude_deg=sr.SIM_LATITUDE_DEG if args.latitude is None else float(args.latitude),
-            grade=args.grade or "nav",
-            seed=1 if args.seed is None else int(args.seed),
-            time_scale=args.time_scale or sr.SIM_DEFAULT_TIME_SCALE,
-            faults=tuple(args.fault),
-            truth_log=str((rd.path / sr.TRUTH_LOG).resolve()),
-        )
-        settings.update(latitude_deg=sim.latitude_deg, height_m=0.0, simulate=sim.to_dict())
-        with sr.ShipSimProcess(sim) as endpoints:  # type: ignore[arg-type]
-            window = sr.acquire(
-                rd,
-                imu_port=str(endpoints["imu"]),
-                rate_hz=1000.0,
-                duration_s=duration,
-                progress=_common.DeviceTimeProgress,
-                settings=settings,
-                config_extra={"endpoints": endpoints},
-            )
-        # the simulator has stopped (its truth log is complete) before the estimator takes the CPU
-    else:
-        bench = config.load(args.config)
-        latitude = config.require_align(bench, "swaying", args.latitude)
-        imu = bench.imu
-        settings.update(latitude_deg=latitude, height_m=bench.site.height_m, simulate=None)
-        window = sr.acquire(
-            rd,
-            imu_port=imu.port,
-            rate_hz=float(imu.rate_hz),
-            baudrate=imu.baudrate,
-            duration_s=duration,
-            progress=_common.DeviceTimeProgress,
-            settings=settings,
-            configure_imu=True,
-            config_extra={"bench": {"imu": asdict(imu), "site": asdict(bench.site), "source": bench.source}},
-        )
+    with base.removed_if_unstarted(rd, sr.OWN_FILES):  # a failed start leaves no empty directory
+        if args.simulate:
+            window = _simulated_window(args, rd, duration, sway, settings)
+        else:
+            window = _bench_window(args, rd, duration, settings)
     t_read = time.monotonic()
     result = sr.finish(rd, window, json_path=args.json)
     record_or_warn(rd.path, unit=getattr(args, "unit", None))  # the results history (an index)

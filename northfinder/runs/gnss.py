@@ -51,6 +51,8 @@ GNSS_NMEA = "gnss.nmea"
 IMU_RX = "imu.rx"
 GNSS_RX = "gnss.rx"
 TRUTH_LOG = "truth.jsonl"
+OWN_FILES = {CONFIG, IMU_RAW, IMU_RX, GNSS_NMEA, GNSS_RX, TRUTH_LOG}
+"""What a run writes before its start event: a failed start that left only these is removed."""
 DEFAULT_DURATION_S = 300.0
 VEL_UP_STD_M_S = 100.0
 """NMEA carries no vertical speed (Up is 0 by convention): its σ says "not measured"."""

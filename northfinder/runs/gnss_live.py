@@ -125,6 +125,80 @@ class Window:
     stop: StopFlag
 
 
+def _open_gnss(rd: RunDir, port: str, baudrate: int) -> contextlib.AbstractContextManager[Any]:
+    """The NMEA receiver with its raw log (gnss.nmea) and host receive stamps (gnss.rx)."""
+    from northfinder.drivers.gnss import Gnss
+
+    return base.guard(
+        "gnss",
+        port,
+        lambda: Gnss(
+            port,
+            timeout_s=5.0,
+            transport=_stamped("gnss", port, baudrate, rd.file(gr.GNSS_NMEA), rd.file(gr.GNSS_RX)),
+        ),
+    )
+
+
+def _read_both(
+    imu: Any, gnss: Any, duration_s: float, stop: StopFlag, blocks: list[Any], fixes: list[Any], view: Any
+) -> None:
+    """The IMU window in device time (base.read_imu_window); between reads, every fix the receiver
+    has decoded, and the view's counters."""
+    last_fix = None
+    for done_s in base.read_imu_window(imu, duration_s, stop, blocks):
+        pending = gnss.pending
+        if pending:
+            fixes.extend(gnss.read_fixes(pending, timeout_s=1.0))
+            last_fix = fixes[-1]
+        view.show(done_s, _progress_info(done_s, duration_s, last_fix, gnss.stats, imu.stats))
+
+
+def _fixes_to_window_end(
+    gnss: Any, last_index: int, rate_hz: float, gnss_start_utc: str, time_scale: float, fixes: list[Any]
+) -> None:
+    """The simulator's fixes up to the window's end are on their way (device time = NMEA UTC −
+    gnss_start_utc): wait for them, bounded in host time by the time scale."""
+    t_end = utc_seconds(gnss_start_utc) + (last_index + 1) / rate_hz + 0.5
+    with contextlib.suppress(DeviceError):
+        fixes.extend(gnss.fixes_until(t_end, timeout_s=2.0 + 1.0 / max(time_scale, 1e-3)))
+
+
+def _end_window(
+    rd: RunDir,
+    stop: StopFlag,
+    blocks: list[Any],
+    fixes: list[Any],
+    rate: float,
+    start: dict[str, Any],
+    gnss_start_utc: str | None,
+    imu_stats: Any,
+    gnss_stats: Any,
+) -> Window:
+    """The end event (the window's index range, fix count, counters, the UTC reference of device
+    time) and the Window; no IMU sample read ends the run (RunAborted if a signal stopped it)."""
+    complete = not stop
+    if not blocks:
+        rd.log_event(
+            {"event": "end", "complete": False, "imu": {"samples": 0}, "gnss": {"fixes": len(fixes)}}
+        )
+        raise base.abort_or(stop, rd, "no IMU samples were read")
+    block = base.concat_blocks(blocks, rate)
+    utc_ref = (
+        utc_seconds(gnss_start_utc) if gnss_start_utc else (math.floor(fixes[0].time_s) if fixes else 0.0)
+    )
+    end = {
+        "event": "end",
+        "complete": complete,
+        "utc": base.now_utc(),
+        "utc_ref_s": utc_ref,
+        "imu": base.imu_end(block, imu_stats.as_dict()),
+        "gnss": {"fixes": len(fixes), "stats": gnss_stats.as_dict()},
+    }
+    rd.log_event(end)
+    return Window(block, fixes, start, end, stop)
+
+
 def acquire(
     rd: RunDir,
     *,
@@ -147,7 +221,6 @@ def acquire(
 ) -> Window:
     """Read both devices for `duration_s` device seconds; the raw logs, stamps and events are saved
     in the run directory. A signal ends the reading early (`Window.stop` says which)."""
-    from northfinder.drivers.gnss import Gnss
     from northfinder.drivers.imu import Imu
 
     rd.write_json(CONFIG, {"kind": gr.KIND, "simulate": simulate, "argv": sys.argv, **(config_extra or {})})
@@ -171,19 +244,7 @@ def acquire(
         )
         if configure_imu:
             imu.configure()  # read the rate and gyro format back: the decoder must know them
-        gnss = stack.enter_context(
-            base.guard(
-                "gnss",
-                gnss_port,
-                lambda: Gnss(
-                    gnss_port,
-                    timeout_s=5.0,
-                    transport=_stamped(
-                        "gnss", gnss_port, gnss_baudrate, rd.file(gr.GNSS_NMEA), rd.file(gr.GNSS_RX)
-                    ),
-                ),
-            )
-        )
+        gnss = stack.enter_context(_open_gnss(rd, gnss_port, gnss_baudrate))
         start = base.start_event(
             gr.KIND,
             duration_s,
@@ -198,45 +259,17 @@ def acquire(
         )
         rd.log_event(start)
         rate = imu.rate_hz
-        last_fix = None
         with base.window_view(progress, duration_s) as view:
-            for done_s in base.read_imu_window(imu, duration_s, stop, blocks):
-                pending = gnss.pending
-                if pending:
-                    fixes.extend(gnss.read_fixes(pending, timeout_s=1.0))
-                    last_fix = fixes[-1]
-                view.show(done_s, _progress_info(done_s, duration_s, last_fix, gnss.stats, imu.stats))
+            _read_both(imu, gnss, duration_s, stop, blocks, fixes, view)
             if not stop and gnss_start_utc is not None and blocks:
-                # the fixes up to the window's end (device time = NMEA UTC − gnss_start_utc) are on their way
                 last = int(blocks[-1].sample_index[-1])
-                t_end = utc_seconds(gnss_start_utc) + (last + 1) / rate + 0.5
-                with contextlib.suppress(DeviceError):
-                    fixes.extend(gnss.fixes_until(t_end, timeout_s=2.0 + 1.0 / max(time_scale, 1e-3)))
+                _fixes_to_window_end(gnss, last, rate, gnss_start_utc, time_scale, fixes)
             pending = gnss.pending
             if pending:
                 fixes.extend(gnss.read_fixes(pending, timeout_s=1.0))
             imu_stats, gnss_stats = imu.stats, gnss.stats
     # ports closed: the raw logs and stamps are complete on disk
-    complete = not stop
-    if not blocks:
-        rd.log_event(
-            {"event": "end", "complete": False, "imu": {"samples": 0}, "gnss": {"fixes": len(fixes)}}
-        )
-        raise base.abort_or(stop, rd, "no IMU samples were read")
-    block = base.concat_blocks(blocks, rate)
-    utc_ref = (
-        utc_seconds(gnss_start_utc) if gnss_start_utc else (math.floor(fixes[0].time_s) if fixes else 0.0)
-    )
-    end = {
-        "event": "end",
-        "complete": complete,
-        "utc": base.now_utc(),
-        "utc_ref_s": utc_ref,
-        "imu": base.imu_end(block, imu_stats.as_dict()),
-        "gnss": {"fixes": len(fixes), "stats": gnss_stats.as_dict()},
-    }
-    rd.log_event(end)
-    return Window(block, fixes, start, end, stop)
+    return _end_window(rd, stop, blocks, fixes, rate, start, gnss_start_utc, imu_stats, gnss_stats)
 
 
 def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool = True) -> dict[str, Any]:

@@ -53,6 +53,8 @@ from northfinder.stopflag import StopFlag
 KIND = "align-swaying"
 SCHEMA = "northfinder.align-swaying/1"
 TRUTH_LOG = "truth.jsonl"
+OWN_FILES = {CONFIG, IMU_RAW, TRUTH_LOG}
+"""What a run writes before its start event: a failed start that left only these is removed."""
 DEFAULT_DURATION_S = 300.0
 DEFAULT_SWAY_PERIOD_S = 10.0
 """Longest sway period assumed on hardware unless --sway-period says otherwise (ship roll 6–12 s)."""
