@@ -387,3 +387,30 @@ def grid_moved(rd: RunDir) -> InputError:
         f"{rd.path}: the simulated IMU's sample grid moved after this client connected "
         "(imu_grid event in the truth log); its samples no longer map to device time"
     )
+
+
+def discard_unstarted_align(rd: RunDir, own_files: set[str]) -> bool:
+    """Remove a run directory this run created whose run never logged an event (bad port, the
+    simulator did not start, Ctrl-C before the devices answered): config.json and empty or partial
+    raw logs (`own_files`) are nothing replay could use. A directory holding anything else, or
+    events, is kept (replay then says what it holds)."""
+    path = rd.path
+    if not rd.created or rd.session != 1 or rd.file(EVENTS).exists() or not path.is_dir():
+        return False
+    entries = list(path.iterdir())
+    if any(e.name not in own_files or e.is_dir() for e in entries):
+        return False
+    for e in entries:
+        e.unlink()
+    path.rmdir()
+    return True
+
+
+@contextlib.contextmanager
+def removed_if_unstarted(rd: RunDir, own_files: set[str]) -> Iterator[RunDir]:
+    """Around an align run's start: a failure before its start event leaves no empty directory."""
+    try:
+        yield rd
+    except BaseException:
+        discard_unstarted_align(rd, own_files)
+        raise
