@@ -124,11 +124,21 @@ def _bump_in_position_5(sim, p) -> None:
         sim.world.add_disturbance(sim.clock.now() + 0.2, 0.5, 0.01)
 
 
+
+def _emcy_in_position_1_and_bump_in_position_5(sim, p) -> None:
+    """An EMCY 0x5000 0.2 s (device) after position 1's dwell has 1 s — while the node is
+    operational (CiA 301 nodes send no EMCY while stopped, i.e. during the moves): a fixed device
+    time would land wherever the host's pace put the moves — then the bump of position 5."""
+    node = sim.accelerometer
+    if p.position == 1 and p.dwell_done_s >= 1.0 and not node.faults.emcy:
+        node.faults.emcy.append((sim.clock.now() + 0.2, 0x5000))
+    _bump_in_position_5(sim, p)
+
+
 FAULTS_A = [
     "imu-crc-rate=0.01",
     "imu-drop-byte-rate=0.002",
     "accel-loss-rate=0.02",
-    "accel-emcy=6",  # inside position 0's rest: CiA 301 nodes send no EMCY while stopped (moves)
     "accel-heartbeat-loss=45",
     "stage-stall=3",
 ]
@@ -137,7 +147,7 @@ FAULTS_A = [
 @pytest.fixture(scope="module")
 def run_a(tmp_path_factory) -> tuple[Path, dict]:
     run_dir = tmp_path_factory.mktemp("faults") / "run_a"
-    return run_dir, _in_process(run_dir, FAULTS_A, during_dwell=_bump_in_position_5)
+    return run_dir, _in_process(run_dir, FAULTS_A, during_dwell=_emcy_in_position_1_and_bump_in_position_5)
 
 
 def test_corrupt_imu_frames_are_dropped_counted_and_the_heading_stays_within_sigma(run_a):
