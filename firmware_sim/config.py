@@ -40,6 +40,12 @@ SCENARIO_DEFAULTS: dict[str, dict[str, Any]] = {
     "ship": {"latitude_deg": 40.0, "imu_rate_hz": 1000, "imu_lever_arm_m": (1.0, 2.0, 1.5)},
     "vehicle": {"latitude_deg": 40.0, "imu_rate_hz": 250, "imu_lever_arm_m": (0.0, 0.0, 0.0)},
 }
+STAGE_RIPPLE_PCT = 0.5
+"""The bench stage's speed ripple, % of the move speed (our choice; docs/simulator.md)."""
+STAGE_RIPPLE_PERIOD_DEG = 4.0
+"""Table angle per worm turn (a 90:1 worm): the ripple's period, v/4° Hz (5 Hz at 20 °/s)."""
+STAGE_WOBBLE_URAD = (20.0, 5.0)
+"""The bench stage's wobble, once and twice per turn, µrad (our choice; docs/simulator.md)."""
 GNSS_RATES_HZ = (1, 5, 10)
 """The sensor presets of docs/ARCHITECTURE.md (firmware_sim/physics/sensors.py), named here so that a
 wrong name is refused before the physics (and scipy) is imported."""
@@ -104,6 +110,20 @@ class SimConfig:
     stage_ringing_decay_s: float | None = None
     encoder_step_deg: float | None = None
     """None: the physics' default for each stage setting."""
+    stage_ripple_pct: float | None = None
+    """Speed ripple during a move, % of the speed (STAGE_RIPPLE_PCT); 0: off."""
+    stage_ripple_period_deg: float | None = None
+    """Table angle per worm turn, the ripple's period (STAGE_RIPPLE_PERIOD_DEG)."""
+    stage_wobble_urad: Any = None
+    """Bearing wobble of the top, µrad: once per turn, or [once, twice, …] per turn (STAGE_WOBBLE_URAD);
+    0: off."""
+    # gyro terms a moving table shows (None: the grade's preset; 0: off)
+    gyro_sf_asymmetry_ppm: Any = None
+    """Scale-factor asymmetry (S₊ − S₋)/S, ppm: one number or [x, y, z]."""
+    gyro_g_sensitivity_dph_g: Any = None
+    """g-sensitivity of the bias, °/h/g: one number or [x, y, z] (diagonal), or 9 (row-major 3×3)."""
+    gyro_misalignment_rad: Any = None
+    """δ: tilt of the x and y gyros' input axes toward the table axis z, rad: one number or [δx, δy]."""
     # CAN accelerometer
     can_interface: str = "slcan"
     """slcan (adapter on a pty, default) | virtual (in-process; give can_channel) | socketcan."""
@@ -233,11 +253,36 @@ def check(cfg: SimConfig) -> None:
     if cfg.truth_log is not None and not cfg.truth_log.strip():
         raise ConfigError("truth_log = '': give the path of a file to write, or leave it out")
     check_links(cfg)
+    check_motion(cfg)
     for name in ("stage_speed_dps", "stage_accel_dps2", "stage_home_speed_dps", "stage_ringing_hz",
                  "encoder_step_deg"):
         value = getattr(cfg, name)
         if value is not None and value <= 0.0:
             raise ConfigError(f"{name} = {value}: give a value > 0 (or leave it out for the default)")
+
+
+_MOTION_SIZES = {"stage_wobble_urad": (1, 2, 3, 4), "gyro_sf_asymmetry_ppm": (1, 3),
+                 "gyro_g_sensitivity_dph_g": (1, 3, 9), "gyro_misalignment_rad": (1, 2)}
+
+
+def check_motion(cfg: SimConfig) -> None:
+    """The motion-error keys: lists of finite numbers of an allowed length, folded to tuples."""
+    for name, sizes in _MOTION_SIZES.items():
+        value = getattr(cfg, name)
+        if value is None:
+            continue
+        items = list(value) if isinstance(value, list | tuple) else [value]
+        if len(items) not in sizes:
+            raise ConfigError(f"{name} = {value!r}: give {' or '.join(map(str, sizes))} numbers")
+        setattr(cfg, name, tuple(float(_number(name, v)) for v in items))
+    for name in ("stage_ripple_pct", "stage_ripple_period_deg"):
+        value = getattr(cfg, name)
+        if value is not None and (value < 0.0 or (name.endswith("deg") and value == 0.0)):
+            raise ConfigError(f"{name} = {value}: give a value {'> 0' if name.endswith('deg') else '>= 0'} "
+                              "(or leave it out for the default)")
+    if cfg.stage_ripple_pct is not None and cfg.stage_ripple_pct >= 50.0:
+        raise ConfigError(f"stage_ripple_pct = {cfg.stage_ripple_pct}: a ripple is a few % of the speed; "
+                          "give less than 50")
 
 
 def parse_imu_axes(spec: str) -> tuple[str, bool]:

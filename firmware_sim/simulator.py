@@ -25,7 +25,15 @@ from typing import Any, TextIO
 import numpy as np
 
 from firmware_sim.clock import DeviceClock
-from firmware_sim.config import SWAY_AXES, ConfigError, SimConfig, gnss_start
+from firmware_sim.config import (
+    STAGE_RIPPLE_PCT,
+    STAGE_RIPPLE_PERIOD_DEG,
+    STAGE_WOBBLE_URAD,
+    SWAY_AXES,
+    ConfigError,
+    SimConfig,
+    gnss_start,
+)
 from firmware_sim.devices.base import Device
 from firmware_sim.physics import earth
 from firmware_sim.pty import PtyPort
@@ -91,10 +99,17 @@ def build_world(cfg: SimConfig, phase_seed: Any = None) -> Any:
         ("ringing_freq_hz", "stage_ringing_hz"),
         ("ringing_decay_s", "stage_ringing_decay_s"),
         ("encoder_step_deg", "encoder_step_deg"),
+        ("ripple_pct", "stage_ripple_pct"),
+        ("ripple_period_deg", "stage_ripple_period_deg"),
+        ("wobble_urad", "stage_wobble_urad"),
     ):
         value = getattr(cfg, name)
         if value is not None:
             table_kw[key] = value
+    # the bench's stage ripples and wobbles unless told otherwise (the physics' default is ideal)
+    table_kw.setdefault("ripple_pct", STAGE_RIPPLE_PCT)
+    table_kw.setdefault("ripple_period_deg", STAGE_RIPPLE_PERIOD_DEG)
+    table_kw.setdefault("wobble_urad", STAGE_WOBBLE_URAD)
     table = TableMotion(**table_kw)
     if cfg.sway:
         platform = SwayingPlatform(cfg.heading_deg, cfg.pitch_deg, cfg.roll_deg, **_sway_terms(cfg.sway))
@@ -104,6 +119,21 @@ def build_world(cfg: SimConfig, phase_seed: Any = None) -> Any:
     if cfg.faults.disturbance is not None:
         world.add_disturbance(*cfg.faults.disturbance)
     return world
+
+
+def gyro_overrides(errors: Any, cfg: SimConfig) -> Any:
+    """The grade's GyroErrors with the config's motion keys applied (None keeps the preset)."""
+    changes: dict[str, Any] = {}
+    if cfg.gyro_sf_asymmetry_ppm is not None:
+        changes["sf_asymmetry_ppm"] = cfg.gyro_sf_asymmetry_ppm
+    if cfg.gyro_g_sensitivity_dph_g is not None:
+        changes["g_sensitivity_dph_g"] = cfg.gyro_g_sensitivity_dph_g
+    if cfg.gyro_misalignment_rad is not None:
+        dx, dy = np.broadcast_to(np.asarray(cfg.gyro_misalignment_rad, dtype=float), (2,))
+        mis = list(errors.misalignment_urad)
+        mis[1], mis[3] = dx * 1e6, dy * 1e6  # (xy, xz, yx, yz, zx, zy): x and y toward z
+        changes["misalignment_urad"] = tuple(mis)
+    return errors.with_(**changes) if changes else errors
 
 
 def _sway_terms(spec: dict[str, Any],
@@ -223,11 +253,10 @@ class TruthLog(Device):
             c_pn, w_np, _ = world.attitude(t)
             vel_ref = np.broadcast_to(plat.kinematics(t, world.site).vel_enu_m_s, (len(t), 3))
         pos_ref = platform_position_enu_m(plat, t)
-        alpha, alpha_dot, _ = world.table.kinematics(t)
+        alpha, c_bp, w_pb = world.table_frame(t)  # Rz(α) and α̇ e_z, with the stage's wobble
         c_pn = np.broadcast_to(c_pn, (len(t), 3, 3))
-        c_bn = c_pn @ earth.rot_z(alpha)
-        w_nb = earth.rot_z_transpose_apply(alpha, np.broadcast_to(w_np, (len(t), 3)))
-        w_nb[:, 2] += alpha_dot
+        c_bn = c_pn @ c_bp
+        w_nb = earth.transpose_apply(c_bp, np.broadcast_to(w_np, (len(t), 3))) + w_pb
 
         def point(r_b: Any) -> tuple[np.ndarray, np.ndarray]:
             r = np.asarray(r_b, dtype=float)
@@ -368,6 +397,8 @@ class Simulator:
             from firmware_sim.config import ConfigError
 
             raise ConfigError(f"grade = {self.config.grade!r}: use one of {', '.join(presets)}") from None
+        if kind == "gyro":
+            errors = gyro_overrides(errors, self.config)
         return model_cls(errors, rate_hz, np.random.default_rng(stream))
 
     def _build(self) -> None:

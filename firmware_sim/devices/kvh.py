@@ -324,8 +324,8 @@ class KvhImu(Device):
         dt = 1.0 / self.rate_hz
         t0 = self.epoch_s + self.emitted * dt
         dtheta, dv = self.world.increments(t0, n, dt, self.lever_arm_b_m)
-        if self.gyro_model is not None:
-            dtheta = self.gyro_model.apply(dtheta)
+        if self.gyro_model is not None:  # the true Δv: the specific force its g-sensitivity feels
+            dtheta = self.gyro_model.apply(dtheta, dv)
         if self.accel_model is not None:
             dv = self.accel_model.apply(dv)
         self.emitted += n

@@ -2,7 +2,10 @@
 
 Per axis (IEEE Std 952 terms): constant bias, white noise (ARW / accelerometer noise density),
 bias instability, rate random walk, scale factor, small-angle axis misalignment, and float32
-quantization of delta angles with the residual carried to the next sample.
+quantization of delta angles with the residual carried to the next sample. What a moving table
+adds (issue 13): the gyro's scale-factor asymmetry (positive and negative rates see different
+scales) and the g-sensitivity of its bias (°/h per g of the specific force the unit sees), both
+pointwise in the sample, so they keep the block-split independence below.
 
 Bias instability B [°/h] is the flicker floor of the Allan deviation (σ_A,min ≈ 0.664·B). We
 model it as a first-order Gauss–Markov process with correlation time τ_c and steady-state
@@ -42,6 +45,16 @@ def _six(v) -> tuple[float, ...]:
     return tuple(float(x) for x in a)
 
 
+def _nine(v) -> tuple[float, ...]:
+    """One number or three → a diagonal 3×3 (row-major); nine → the full matrix."""
+    a = np.asarray(v, dtype=float).ravel()
+    if a.size in (1, 3):
+        return tuple(float(x) for x in np.diag(np.broadcast_to(a, (3,))).ravel())
+    if a.size != 9:
+        raise ValueError(f"give 1, 3 or 9 numbers for a 3×3 matrix, not {a.size}")
+    return tuple(float(x) for x in a)
+
+
 def _misalignment_matrix(six_urad) -> np.ndarray:
     """(xy, xz, yx, yz, zx, zy) µrad → off-diagonal M: axis i senses M[i, j] of true axis j."""
     m = np.zeros((3, 3))
@@ -54,13 +67,14 @@ class _PerAxis:
     """Broadcast scalar fields to per-axis triples (custom values may be given as one number)."""
 
     _SIX = ("misalignment_urad",)
+    _NINE = ("g_sensitivity_dph_g",)
     _SCALAR = ("bi_correlation_s", "float32_delta")
 
     def __post_init__(self) -> None:
         for f in fields(self):  # type: ignore[arg-type]
             if f.name in self._SCALAR:
                 continue
-            conv = _six if f.name in self._SIX else _triple
+            conv = _six if f.name in self._SIX else _nine if f.name in self._NINE else _triple
             object.__setattr__(self, f.name, conv(getattr(self, f.name)))
 
 
@@ -76,6 +90,15 @@ class GyroErrors(_PerAxis):
     scale_factor_ppm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     misalignment_urad: tuple[float, ...] = (0.0,) * 6
     float32_delta: bool = True
+    sf_asymmetry_ppm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """(S₊ − S₋)/S per axis: positive rates see the scale 1 + S + A/2, negative ones 1 + S − A/2."""
+    g_sensitivity_dph_g: tuple[float, ...] = (0.0,) * 9
+    """Row-major 3×3 G: gyro i's bias moves by G[i][j] °/h per g of specific force along axis j."""
+
+    @property
+    def tilt_to_z_rad(self) -> tuple[float, float]:
+        """δ of the x and y gyros: how far each input axis leans toward z (M_xz, M_yz) [rad]."""
+        return (self.misalignment_urad[1] * 1e-6, self.misalignment_urad[3] * 1e-6)
 
     def with_(self, **changes) -> GyroErrors:
         """A copy with some values changed (custom grades)."""
@@ -104,6 +127,16 @@ class AccelErrors(_PerAxis):
 #        ~10 µg/√Hz). kvh1760: KVH 1750/1760-class FOG IMU, accelerometer VRW 0.12 mg/√Hz and
 #        bias stability 0.05 mg as on KVH's 1750 data sheet. tactical-mems: ADIS1649x class
 #        (~25–50 µg/√Hz, sub-mg bias). consumer: phone-class MEMS (~150–300 µg/√Hz, tens of mg).
+def _g_matrix(diag: float, off: float) -> tuple[float, ...]:
+    """A g-sensitivity matrix [°/h/g]: `diag` on the own axis, cross terms of size ≤ `off`."""
+    return (diag, off, -0.8 * off, -0.6 * off, diag, off, 0.8 * off, -off, diag)
+
+
+# Motion terms (issue 13; docs/simulator.md says where each number comes from): scale-factor
+# asymmetry and g-sensitivity are our choices of the order each class states (nav ~1 ppm and
+# ~0.001 °/h/g; a KVH 1750-class FOG tens of ppm and ~0.1 °/h/g; a factory-compensated
+# ADIS1649x-class MEMS hundreds of ppm and a few °/h/g; an uncompensated phone/industrial MEMS
+# ~0.1–0.3 % and ~50 °/h/g, cf. the ±0.015 °/s/g ADIS16445 figure).
 GYRO_PRESETS: dict[str, GyroErrors] = {
     "nav": GyroErrors(
         bias_dph=(0.004, -0.003, 0.002),
@@ -113,6 +146,8 @@ GYRO_PRESETS: dict[str, GyroErrors] = {
         rrw_dph_rt_h=0.0005,
         scale_factor_ppm=(1.0, -1.0, 1.0),
         misalignment_urad=(5.0, -3.0, 4.0, 2.0, -6.0, 3.0),
+        sf_asymmetry_ppm=(1.0, -0.8, 1.2),
+        g_sensitivity_dph_g=_g_matrix(0.001, 0.0005),
     ),
     "kvh1760": GyroErrors(
         bias_dph=(0.3, -0.2, 0.25),
@@ -122,6 +157,8 @@ GYRO_PRESETS: dict[str, GyroErrors] = {
         rrw_dph_rt_h=0.01,
         scale_factor_ppm=(50.0, -40.0, 45.0),
         misalignment_urad=(50.0, -30.0, 40.0, 20.0, -60.0, 30.0),
+        sf_asymmetry_ppm=(20.0, -15.0, 25.0),
+        g_sensitivity_dph_g=_g_matrix(0.1, 0.05),
     ),
     "tactical-mems": GyroErrors(
         bias_dph=(5.0, -4.0, 3.0),
@@ -131,6 +168,8 @@ GYRO_PRESETS: dict[str, GyroErrors] = {
         rrw_dph_rt_h=0.5,
         scale_factor_ppm=(500.0, -400.0, 450.0),
         misalignment_urad=(500.0, -300.0, 400.0, 200.0, -600.0, 300.0),
+        sf_asymmetry_ppm=(200.0, -150.0, 250.0),
+        g_sensitivity_dph_g=_g_matrix(3.0, 1.0),
     ),
     "consumer": GyroErrors(
         bias_dph=(200.0, -150.0, 100.0),
@@ -140,6 +179,8 @@ GYRO_PRESETS: dict[str, GyroErrors] = {
         rrw_dph_rt_h=10.0,
         scale_factor_ppm=(5000.0, -4000.0, 3000.0),
         misalignment_urad=(5000.0, -3000.0, 4000.0, 2000.0, -6000.0, 3000.0),
+        sf_asymmetry_ppm=(2000.0, -1500.0, 2500.0),
+        g_sensitivity_dph_g=_g_matrix(50.0, 20.0),
     ),
 }
 ACCEL_PRESETS: dict[str, AccelErrors] = {
@@ -279,8 +320,12 @@ class _ErrorModel:
 class GyroModel(_ErrorModel):
     """Delta angles in, measured delta angles out [rad per sample], one model per gyro triad.
 
-    Δθ_meas = (I + S + M)·Δθ_true + (b + b_GM + b_RRW)·dt + N·√dt·w, then float32 with carry.
+    Δθ_meas = (I + S + M)·Δθ_true + (A/2)·|Δθ_true| + G·Δv_true/g0 + (b + b_GM + b_RRW)·dt
+              + N·√dt·w, then float32 with carry.
     N = ARW·(π/180)/60 rad/√s; RRW K [°/h/√h] → rate steps K·(π/180)/3600/60·√dt per sample.
+    A: scale-factor asymmetry per axis (|·| of the axis's own true increment); G [°/h/g → rad/s
+    per m/s²]: g-sensitivity acting on the true specific force over the sample (Δv_true/dt), so
+    the bias moves with what the unit's accelerometers feel (gravity, table and lever-arm terms).
     """
 
     def __init__(self, errors: GyroErrors, sample_rate_hz: float, rng) -> None:
@@ -300,10 +345,25 @@ class GyroModel(_ErrorModel):
             k_rad_s_rt_s * math.sqrt(dt),
         )
         self._f32 = Float32Carry(3) if errors.float32_delta else None
+        half_asym = np.asarray(errors.sf_asymmetry_ppm) * 0.5e-6
+        self._half_asym = half_asym if np.any(half_asym) else None  # off: not even a +0.0
+        g_mat = np.asarray(errors.g_sensitivity_dph_g).reshape(3, 3) * DPH / G0_M_S2
+        self._g_t = g_mat.T.copy() if np.any(g_mat) else None
 
-    def apply(self, dtheta_true_rad: np.ndarray) -> np.ndarray:
-        """Measured delta angles [n,3] rad for consecutive true ones (state carried)."""
-        out = self._apply(dtheta_true_rad)
+    def apply(self, dtheta_true_rad: np.ndarray, dv_true_m_s: np.ndarray | None = None) -> np.ndarray:
+        """Measured delta angles [n,3] rad for consecutive true ones (state carried).
+
+        `dv_true_m_s` [n,3]: the true velocity increments at the unit over the same samples, for
+        the g-sensitivity; None leaves that term out (a caller with no specific force at hand).
+        """
+        x = np.asarray(dtheta_true_rad, dtype=float).reshape(-1, 3)
+        out = self._apply(x)
+        if self._half_asym is not None:
+            out = out + np.abs(x) * self._half_asym
+        if self._g_t is not None and dv_true_m_s is not None:
+            dv = np.asarray(dv_true_m_s, dtype=float).reshape(-1, 3)
+            g = self._g_t
+            out = out + (dv[:, 0:1] * g[0] + dv[:, 1:2] * g[1] + dv[:, 2:3] * g[2])
         return self._f32.apply(out) if self._f32 is not None else out
 
 

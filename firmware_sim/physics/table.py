@@ -11,6 +11,18 @@ None or 0 turns it off). The encoder sits on the motor side
 (as on a worm-driven rotation stage), so it reads the planned angle, quantized, and equals the
 top's angle once the ringing has died out.
 
+Two imperfections of a real worm-driven stage (issue 13; off unless given, the bench turns them
+on, docs/simulator.md): a speed ripple and a bearing wobble.
+
+- Speed ripple: the servo follows the plan with a periodic error tied to the worm's angle,
+  e = A·sin(2π·p/λ)·v/V (p, v: planned angle and rate, V: the configured speed, λ: table angle
+  per worm turn, A = r·λ/2π). At the configured speed the rate ripples by ±r of itself at v/λ Hz;
+  e is 0 whenever the plan is at rest, so every move still ends exactly on its target and the
+  encoder (motor side, it reads p + e) is exact at rest. The ripple does not excite the ringing.
+- Wobble: the top's axis tilts by a small rotation vector w(α) = Σ_k a_k·[cos kα, sin kα, 0] in p
+  (k = 1: a tilt fixed in the top that cones once per turn; k = 2: the bearing's out-of-round,
+  which the top sees change as it turns). C_b^p = exp([w×])·Rz(α); the World applies it.
+
 Everything is vectorized over t; commands must come in non-decreasing device time. A command
 at t replaces whatever was planned after t (motion before t is history and never changes).
 """
@@ -39,6 +51,9 @@ class TableMotion:
         ringing_freq_hz: float = 10.0,
         ringing_decay_s: float = 0.3,
         encoder_step_deg: float = 1e-4,
+        ripple_pct: float = 0.0,
+        ripple_period_deg: float = 4.0,
+        wobble_urad: float | tuple[float, ...] = 0.0,
     ) -> None:
         if speed_deg_s <= 0 or accel_deg_s2 <= 0:
             raise ValueError("table speed_deg_s and accel_deg_s2 must be > 0")
@@ -69,6 +84,12 @@ class TableMotion:
         """Device time the planned motion ends (the ringing goes on a little longer)."""
         self.stalled = False
         self._ring_cache: tuple | None = None
+        if ripple_pct < 0 or ripple_period_deg <= 0:
+            raise ValueError("table ripple_pct must be >= 0 and ripple_period_deg > 0")
+        self.ripple_k = 2.0 * math.pi / (ripple_period_deg * DEG)  # rad of worm phase per rad of table
+        self.ripple_amp_rad = ripple_pct / 100.0 / self.ripple_k  # A = r·λ/2π
+        self.wobble_rad = np.atleast_1d(np.asarray(wobble_urad, dtype=float)) * 1e-6
+        """a_k [rad] for k = 1, 2, …; all zero: no wobble (and not a single extra operation)."""
 
     # -- planning ---------------------------------------------------------------------------
     @property
@@ -205,14 +226,47 @@ class TableMotion:
         return self.command_move(t_s, 0.0, speed_rad_s=self.home_speed_rad_s)
 
     # -- evaluation -------------------------------------------------------------------------
-    def motor_kinematics(self, t_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Planned (motor-side) angle, rate, acceleration at t_s (vectorized)."""
+    def planned_kinematics(self, t_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Planned angle, rate, acceleration at t_s (vectorized): the trapezoids, no ripple."""
         t = np.asarray(t_s, dtype=float)
         k = np.searchsorted(self._t, t, side="right") - 1
         k = np.maximum(k, 0)
         tau = np.where(np.isfinite(self._t[k]), t - self._t[k], 0.0)
         a = self._a[k]
         return self._p[k] + self._v[k] * tau + 0.5 * a * tau**2, self._v[k] + a * tau, a
+
+    def motor_kinematics(self, t_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Motor-side angle, rate, acceleration at t_s: the plan plus the speed ripple.
+
+        e = A·S·v/V, ė = A·(k·C·v² + S·a)/V, ë = A·(3k·C·v·a − k²·S·v³)/V with S, C = sin, cos(k·p)
+        (a is constant between knots). 0 wherever the plan is at rest.
+        """
+        p, v, a = self.planned_kinematics(t_s)
+        if self.ripple_amp_rad == 0.0:
+            return p, v, a
+        k, scale = self.ripple_k, self.ripple_amp_rad / self.speed_rad_s
+        s, c = np.sin(k * p), np.cos(k * p)
+        e = scale * s * v
+        ed = scale * (k * c * v * v + s * a)
+        edd = scale * (3.0 * k * c * v * a - k * k * s * v**3)
+        return p + e, v + ed, a + edd
+
+    def wobble(self, alpha_rad) -> tuple[np.ndarray, np.ndarray] | None:
+        """(w [...,3], dw/dα [...,3]): the top's tilt as a rotation vector in p, at angles α; None
+        when the stage has no wobble."""
+        if not np.any(self.wobble_rad):
+            return None
+        alpha = np.asarray(alpha_rad, dtype=float)
+        w = np.zeros(alpha.shape + (3,))
+        dw = np.zeros(alpha.shape + (3,))
+        for k, a_k in enumerate(self.wobble_rad, start=1):
+            if a_k:
+                c, s = np.cos(k * alpha), np.sin(k * alpha)
+                w[..., 0] += a_k * c
+                w[..., 1] += a_k * s
+                dw[..., 0] -= k * a_k * s
+                dw[..., 1] += k * a_k * c
+        return w, dw
 
     def _ring_steps(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Knot times, forcing steps Δu = −k·Δa, and cumsum of Δu (for settled knots)."""

@@ -322,7 +322,7 @@ def simulate_drive(
     n = int(round(traj.duration_s * rate_hz))
     dth, dv = world.increments(0.0, n, 1.0 / rate_hz)
     seeds = np.random.SeedSequence(seed).spawn(3)
-    dth = GyroModel(gyro_errors(grade), rate_hz, np.random.default_rng(seeds[0])).apply(dth)
+    dth = GyroModel(gyro_errors(grade), rate_hz, np.random.default_rng(seeds[0])).apply(dth, dv)
     dv = AccelModel(accel_errors(grade), rate_hz, np.random.default_rng(seeds[1])).apply(dv)
     t_g = np.arange(1, int(np.floor(traj.duration_s * gnss_rate_hz)) + 1) / gnss_rate_hz
     pos, vel = traj.antenna_enu(t_g, lever_arm_b_m)

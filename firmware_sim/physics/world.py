@@ -7,6 +7,12 @@ sensor sits at a lever arm r^b from it, fixed in b.
     ω_ib^b = C_p^b (C_n^p ω_in^n + ω_np^p) + α̇ e_z,           ω_in^n = ω_ie^n + ω_en^n
     f^b    = C_p^b C_n^p (v̇^n + (2ω_ie^n + ω_en^n) × v^n − g^n) + ω̇_ib^b × r + ω_ib^b × (ω_ib^b × r)
 
+A stage with wobble (TableMotion.wobble) tilts the top by a small rotation vector w(α) in p:
+C_b^p = exp([w×])·Rz(α), so C_p^b v = Rz(α)ᵀ(v − w × v + ½ w × (w × v)) and the top gains the
+rate ẇ = (dw/dα)·α̇ (in b: Rz(α)ᵀẇ; w·ẇ ≲ 1e-10 rad/s dropped). Every sensor, the truth log and
+the still fast path go through this one place. Neglected with a lever arm: the wobble's angular
+acceleration (≤ k²·a·α̇² ~ 1e-5 rad/s², < 0.1 µg per 0.1 m).
+
 with g^n = [0, 0, −γ(L, h)] (normal gravity, centrifugal part included) and v̇^n the rate of
 change of the ENU velocity components (the navigation equation v̇^n = C_b^n f^b − (2ω_ie +
 ω_en) × v^n + g^n solved for f). Neglected, documented: the rate of change of ω_in^n in ω̇
@@ -201,6 +207,12 @@ class Disturbance:
         return t_b >= self.start_s and t_a <= self.start_s + self.duration_s
 
 
+def _untilt(w: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """exp([w×])ᵀ·v to second order in the small rotation vector w (µrad: exact to 1e-16)."""
+    wxv = earth.cross(w, v)
+    return v - wxv + 0.5 * earth.cross(w, wxv)
+
+
 class World:
     """Site + platform + table: the truth every simulated sensor reads (one World per bench)."""
 
@@ -308,10 +320,16 @@ class World:
         w_ip, wd_ip, f_p = self._platform_p(t)
         alpha, ad, add = self.table.kinematics(t)
         shape = t.shape + (3,)
-        w_rot = earth.rot_z_transpose_apply(alpha, np.broadcast_to(w_ip, shape))
+        w_ip, f_p = np.broadcast_to(w_ip, shape), np.broadcast_to(f_p, shape)
+        wobble = self.table.wobble(alpha)
+        if wobble is not None:
+            w_ip, f_p = _untilt(wobble[0], w_ip), _untilt(wobble[0], f_p)
+        w_rot = earth.rot_z_transpose_apply(alpha, w_ip)
+        if wobble is not None:
+            w_rot = w_rot + earth.rot_z_transpose_apply(alpha, wobble[1] * ad[..., None])
         w_b = w_rot.copy()
         w_b[..., 2] += ad
-        f_b = earth.rot_z_transpose_apply(alpha, np.broadcast_to(f_p, shape))
+        f_b = earth.rot_z_transpose_apply(alpha, f_p)
         if np.any(r):
             # ω̇_ib^b = C_p^b ω̇_ip^p − α̇ e_z × (C_p^b ω_ip^p) + α̈ e_z  (the last term handled apart)
             wd_b = earth.rot_z_transpose_apply(alpha, np.broadcast_to(wd_ip, shape))
@@ -319,6 +337,28 @@ class World:
             wd_b[..., 1] -= ad * w_rot[..., 0]
             f_b = f_b + earth.cross(wd_b, r) + earth.cross(w_b, earth.cross(w_b, r))
         return w_rot, f_b, (alpha, ad, add)
+
+    def table_frame(self, t_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(α [N], C_b^p [N,3,3], ω_pb^b [N,3]) of the table top: Rz(α) and α̇ e_z, tilted by the
+        stage's wobble when it has one (the truth log's attitude of b)."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        alpha, ad, _ = self.table.kinematics(t)
+        c_bp = earth.rot_z(alpha)
+        w_pb = np.zeros(t.shape + (3,))
+        w_pb[..., 2] = ad
+        wobble = self.table.wobble(alpha)
+        if wobble is not None:
+            w, dw = wobble
+            ang = np.linalg.norm(w, axis=-1)
+            k = np.where((ang > 0)[..., None], w / np.where(ang > 0, ang, 1.0)[..., None], 0.0)
+            kx = np.zeros(t.shape + (3, 3))
+            kx[..., 0, 1], kx[..., 0, 2], kx[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
+            kx[..., 1, 0], kx[..., 2, 0], kx[..., 2, 1] = k[..., 2], -k[..., 1], k[..., 0]
+            s, c = np.sin(ang)[..., None, None], (1.0 - np.cos(ang))[..., None, None]
+            tilt = np.eye(3) + s * kx + c * (kx @ kx)  # Rodrigues: exp([w×])
+            c_bp = tilt @ c_bp
+            w_pb = w_pb + earth.rot_z_transpose_apply(alpha, dw * ad[..., None])
+        return alpha, c_bp, w_pb
 
     def truth(self, t_s, lever_arm_b_m=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
         """(ω_ib^b [N,3] rad/s, f^b [N,3] m/s²) at device times t_s for a sensor at the lever arm."""
