@@ -13,7 +13,7 @@ import sys
 
 # (module, subcommand) — modules are imported lazily so that a missing optional part does not
 # break the others.
-SUBCOMMANDS = ("find", "check", "replay", "align", "campaign", "history")
+SUBCOMMANDS = ("find", "check", "replay", "align", "campaign", "history", "plan")
 
 
 def build_parser() -> argparse.ArgumentParser:

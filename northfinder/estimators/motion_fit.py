@@ -1,0 +1,184 @@
+"""Per-sample harmonic fit: every gyro sample with its own table angle, moving or at rest.
+
+docs/estimators.md §10 (equations M1–M4). Stop-and-go uses the dwell means only; here the
+samples taken while the table turns and settles are fitted too. Their table angle comes from
+the z gyro integrated between two encoder readings at rest, the integral pinned to the encoder
+at both ends (M1). The horizontal gyros then read (M2)
+
+    x(t) = R_x + v_x·cos α + v_y·sin α + δ_x·ω(t)
+    y(t) = R_y − v_x·sin α + v_y·cos α + δ_y·ω(t)
+
+where ω is the table rate and δ the input axis's misalignment toward the table axis. The
+misalignment is estimated (`terms=("misalignment",)`) or, with whole revolutions in both
+directions, cancels (its column is orthogonal to every other one, M3). Pure numpy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from northfinder.constants import DPH, OMEGA_EARTH_RAD_S
+from northfinder.errors import InputError
+from northfinder.estimators.harmonic import HarmonicFit
+from northfinder.estimators.methods import METHODS
+
+MOTION_TERMS = ("misalignment", "rate_squared")
+"""misalignment: δ·ω per axis (odd in ω); rate_squared: c·ω² per axis (even: centripetal
+g-sensitivity, does not cancel by reversing)."""
+
+MAX_CONDITION = 1.0e4
+"""Largest accepted condition number of the column-normalised per-sample design."""
+
+
+def _rest_segments(rest: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) index ranges of consecutive rest samples."""
+    edges = np.flatnonzero(np.diff(np.r_[0, rest.astype(np.int8), 0]))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
+
+
+def table_angle_from_z(z_dph, dt_s: float, rest_encoder_deg) -> tuple[np.ndarray, np.ndarray]:
+    """Table angle α [deg] and rate ω [deg/s] at every sample (eq M1).
+
+    `z_dph` (m,): the b-z gyro; `rest_encoder_deg` (m,): the encoder reading at rest, NaN while the
+    table moves. At rest α is the encoder; the z bias b_z (Earth's vertical rate + gyro bias) is
+    the mean z over the rest samples; through a move α(t) = α_0 + s·∫(z − b_z)dt (at each sample's
+    middle: a sample is the rate averaged over its interval) with
+    s = (α_1 − α_0)/∫_move(z − b_z)dt, so the integral lands on the encoder at both ends (s takes
+    out the z gyro's scale factor and its asymmetry, move by move). Rest samples get ω = 0.
+    """
+    z = np.asarray(z_dph, dtype=float) / 3600.0  # deg/s
+    enc = np.asarray(rest_encoder_deg, dtype=float)
+    if z.shape != enc.shape or z.ndim != 1:
+        raise InputError(f"z gyro {z.shape} and encoder {enc.shape} must be 1-D of the same length")
+    rest = np.isfinite(enc)
+    if not rest[0] or not rest[-1]:
+        raise InputError("motion samples: the run must start and end at rest with an encoder reading")
+    alpha, omega = enc.copy(), np.zeros_like(z)
+    b_z = float(np.mean(z[rest]))
+    segs = _rest_segments(rest)
+    for (_, end0), (start1, _) in zip(segs[:-1], segs[1:], strict=True):
+        rate = z[end0:start1] - b_z
+        ends = np.cumsum(rate) * dt_s  # turned at each sample's end (a sample integrates its interval)
+        a0, a1 = enc[end0 - 1], enc[start1]
+        if abs(ends[-1]) < 1e-9:
+            raise InputError(
+                f"motion samples {end0}…{start1}: the z gyro shows no turn; is z the table axis?"
+            )
+        s = (a1 - a0) / ends[-1]
+        alpha[end0:start1] = a0 + s * (ends - 0.5 * rate * dt_s)  # at each sample's middle
+        omega[end0:start1] = s * rate
+    return alpha, omega
+
+
+def motion_design(
+    alpha_deg, omega_dps, axes: tuple[str, ...], terms: tuple[str, ...] = ("misalignment",)
+) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Per-sample design matrix (eq M2), rows axis-major, and its parameter names.
+
+    Columns: v_x, v_y (the platform-frame Earth rate, paper eq 4 per sample), R_<axis> per axis,
+    then per term and axis d_<axis> (ω [deg/s], coefficient δ in deg/h per deg/s) or
+    q_<axis> (ω² [(deg/s)²]).
+    """
+    unknown = set(terms) - set(MOTION_TERMS)
+    if unknown:
+        raise InputError(f"motion terms must be among {list(MOTION_TERMS)}, got {sorted(unknown)}")
+    a = np.deg2rad(np.asarray(alpha_deg, dtype=float))
+    w = np.asarray(omega_dps, dtype=float)
+    m = a.size
+    c, s = np.cos(a), np.sin(a)
+    names = ["v_x", "v_y"] + [f"R_{ax}" for ax in axes]
+    cols = {"misalignment": ("d", w), "rate_squared": ("q", w**2)}
+    for t in terms:
+        names += [f"{cols[t][0]}_{ax}" for ax in axes]
+    blocks = []
+    for ax in axes:
+        block = np.zeros((m, len(names)))
+        block[:, 0], block[:, 1] = (c, s) if ax == "x" else (-s, c)
+        block[:, names.index(f"R_{ax}")] = 1.0
+        for t in terms:
+            block[:, names.index(f"{cols[t][0]}_{ax}")] = cols[t][1]
+        blocks.append(block)
+    return np.vstack(blocks), tuple(names)
+
+
+def _check_condition(a_mat: np.ndarray, names: tuple[str, ...]) -> None:
+    """One line when the samples cannot separate the parameters (e.g. motion terms, no motion)."""
+    norms = np.linalg.norm(a_mat, axis=0)
+    if np.any(norms == 0.0):
+        raise InputError(
+            f"motion fit: column {names[int(np.argmin(norms))]} is all zero (no motion in the samples?); "
+            "drop the motion terms"
+        )
+    cond = float(np.linalg.cond(a_mat / norms))
+    if not np.isfinite(cond) or cond > MAX_CONDITION:
+        raise InputError(
+            f"motion fit: the samples cannot separate {', '.join(names)} (condition {cond:.3g}); "
+            "turn through whole revolutions or more positions"
+        )
+
+
+def fit_motion(
+    alpha_deg,
+    omega_dps,
+    gyro_dph,
+    axes: tuple[str, ...] = ("x", "y"),
+    *,
+    sample_std_dph: float | None = None,
+    terms: tuple[str, ...] = ("misalignment",),
+) -> HarmonicFit:
+    """Least squares of eq M2 over every sample, batched over trials (eq M3).
+
+    gyro_dph (T, m, k) or (m, k) with k = len(axes) (column j is axis axes[j]), one row per
+    sample at alpha_deg (m,), omega_dps (m,). X̂ = (AᵀA)⁻¹AᵀY (white noise: equal weights);
+    with `sample_std_dph` (σ of one sample) Cov = σ²(AᵀA)⁻¹ (noise "given"), else from the
+    residuals. terms=() is the fit that ignores what motion adds.
+    """
+    y = np.asarray(gyro_dph, dtype=float)
+    if y.ndim == 2:
+        y = y[None]
+    trials, m, k = y.shape
+    if k != len(axes) or np.size(alpha_deg) != m or np.size(omega_dps) != m:
+        raise InputError(
+            f"motion fit: gyro {y.shape[1:]} does not match {np.size(alpha_deg)} angles × {axes}"
+        )
+    if not np.all(np.isfinite(y)):
+        raise InputError("motion fit: gyro samples contain NaN or inf")
+    a_mat, names = motion_design(alpha_deg, omega_dps, axes, terms)
+    _check_condition(a_mat, names)
+    normal_inv = np.linalg.inv(a_mat.T @ a_mat)
+    pinv = normal_inv @ a_mat.T
+    rows = y.transpose(0, 2, 1).reshape(trials, k * m)
+    coef = rows @ pinv.T
+    resid = rows - coef @ a_mat.T
+    dof = k * m - len(names)
+    rms = {ax: np.sqrt(np.mean(resid[:, j * m : (j + 1) * m] ** 2, axis=-1)) for j, ax in enumerate(axes)}
+    if sample_std_dph is not None:
+        cov, noise = (
+            np.broadcast_to(sample_std_dph**2 * normal_inv, (trials,) + normal_inv.shape).copy(),
+            "given",
+        )
+    else:
+        s2 = np.sum(resid**2, axis=-1) / dof
+        cov, noise = s2[:, None, None] * normal_inv, "residuals"
+    return HarmonicFit(names, coef, cov, rms, dof, noise)
+
+
+def heading_from_rates(v_x_dph, v_y_dph, up_p, latitude_deg: float, cov_dph2=None):
+    """Heading [deg, 0…360) of the exact method (docs/estimators.md §4) from fitted v_x, v_y,
+    and its 1σ [deg] from their 2×2 covariance (eq M4: σψ² = ∇ψᵀ Σ ∇ψ, ∇ψ by central
+    differences; the up vector u^p (…, 3) is taken as exact)."""
+    lat = np.deg2rad(latitude_deg)
+    omega_h = OMEGA_EARTH_RAD_S * np.sin(lat)
+    wx, wy = np.asarray(v_x_dph, dtype=float) * DPH, np.asarray(v_y_dph, dtype=float) * DPH
+    up = np.asarray(up_p, dtype=float)
+    psi = METHODS["exact"](wx, wy, up, omega_h)
+    if cov_dph2 is None:
+        return np.rad2deg(psi), None
+    h = 1e-4 * OMEGA_EARTH_RAD_S
+    grads = []
+    for dx, dy in ((h, 0.0), (0.0, h)):
+        d = METHODS["exact"](wx + dx, wy + dy, up, omega_h) - METHODS["exact"](wx - dx, wy - dy, up, omega_h)
+        grads.append((np.mod(d + np.pi, 2 * np.pi) - np.pi) / (2 * h) * DPH)  # rad per deg/h
+    g = np.stack(grads, axis=-1)
+    var = np.einsum("...i,...ij,...j->...", g, np.asarray(cov_dph2)[..., :2, :2], g)
+    return np.rad2deg(psi), np.rad2deg(np.sqrt(var))
