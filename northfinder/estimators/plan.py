@@ -388,9 +388,11 @@ def choose_plan(
             if p is not None:
                 alts.append(p)
     if not alts:
-        what = (f"σ {target_std_deg:g}° within {max_time_s / 3600:g} h" if target_std_deg is not None
-                else f"any plan within {time_budget_s:g} s")  # fmt: skip
-        raise InputError(f"no plan reaches {what}; relax the target or give a longer time budget")
+        if target_std_deg is not None:
+            raise InputError(f"no plan reaches σ {target_std_deg:g}° within {max_time_s / 3600:g} h; "
+                             "relax the target or use a better gyro")  # fmt: skip
+        raise InputError(f"no plan fits in {time_budget_s:g} s (the moves and settles alone take longer); "
+                         "give a longer time budget")  # fmt: skip
     if target_std_deg is not None:
 
         def score(p: Prediction) -> float:

@@ -1,0 +1,118 @@
+"""The per-sample motion fit (docs/estimators.md §10): the z-gyro angle pinned to the encoder, the
+misalignment term δ·ω estimated or cancelled, and what ignoring it costs. The synthetic data come
+from tools/plan_vs_limit.py's own forward model (CONVENTIONS.md frames, written out there)."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from northfinder.errors import InputError
+from northfinder.estimators import plan as P
+from northfinder.estimators.motion_fit import fit_motion, motion_design, table_angle_from_z
+from tests.helpers import REPO
+
+
+def _tool():
+    spec = importlib.util.spec_from_file_location("plan_vs_limit", REPO / "tools" / "plan_vs_limit.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("plan_vs_limit", mod)  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+TOOL = _tool()
+LAT, TILT, HEADING = 40.0, 2.0, 37.0
+ONE_WAY = P.Stage(return_to_start=False)
+
+
+def _one_way_plan() -> P.PlanSpec:
+    return P.PlanSpec("positions+motion", 8, P.positions_dwell_for(240.0, 8, ONE_WAY))
+
+
+def _headings(spec, stage, sensor, err, trials, terms, seed=5, rate_hz=50.0):
+    sch = P.schedule(spec, stage, 1.0 / rate_hz)
+    rng = np.random.default_rng(seed)
+    gyro, accel = TOOL.simulate_samples(rng, trials, sch, sensor, err, HEADING, LAT, TILT, 90.0)
+    return TOOL.headings_motion(sch, gyro, accel, sensor, LAT, terms) - HEADING
+
+
+def test_z_gyro_angle_is_pinned_to_the_encoder_and_takes_out_the_scale_factor():
+    """300 ppm scale factor + 100 ppm asymmetry on z, a 0.3 °/h z bias: the angle through every move
+    stays on the true one (the pin removes scale and asymmetry move by move)."""
+    sch = P.schedule(_one_way_plan(), ONE_WAY, 0.01)
+    quiet = replace(P.GRADES["nav"], arw_deg_rt_h=1e-9, bias_instability_dph=0.0, rrw_dph_rt_h=0.0)
+    err = TOOL.MotionErrors(sf_z_ppm=300.0, sf_z_asym_ppm=100.0, bias_dph=(0.0, 0.0, 0.3))
+    gyro, _ = TOOL.simulate_samples(np.random.default_rng(1), 1, sch, quiet, err, HEADING, LAT, TILT, 90.0)
+    enc = np.where(sch.rest, sch.alpha_deg, np.nan)
+    alpha, omega = table_angle_from_z(gyro[0, :, 2], sch.dt_s, enc)
+    assert np.max(np.abs(alpha - sch.alpha_deg)) < 2e-3  # deg, from a half-sample rate step at most
+    moving = ~sch.rest
+    assert np.max(np.abs(omega[moving] - sch.omega_dps[moving])) < 1e-3
+    # without the pin (raw integral) the scale factor alone leaves 315° × 400 ppm = 0.13°
+    raw = np.cumsum(gyro[0, :, 2] / 3600.0 - np.mean(gyro[0, sch.rest, 2] / 3600.0)) * sch.dt_s
+    assert abs(raw[-1] - sch.alpha_deg[-1]) > 0.1
+
+
+def test_ignoring_the_misalignment_is_biased_and_the_full_fit_is_not_noise_free():
+    """δ = 2e-4 rad on x (−1.5e-4 on y), one-way stop-and-go with motion samples, no noise: the
+    fit without motion terms is off by far more than the nav σ; the full fit by nothing."""
+    quiet = replace(P.GRADES["nav"], arw_deg_rt_h=1e-7, bias_instability_dph=0.0, rrw_dph_rt_h=0.0,
+                    accel_noise_ug_rt_hz=0.0)  # fmt: skip
+    err = TOOL.MotionErrors()
+    ignored = _headings(_one_way_plan(), ONE_WAY, quiet, err, 1, ())
+    full = _headings(_one_way_plan(), ONE_WAY, quiet, err, 1, ("misalignment",))
+    sigma = P.predict(_one_way_plan(), P.GRADES["nav"], LAT, TILT, ONE_WAY).sigma_deg
+    assert abs(ignored[0]) > 1.5 * sigma, ignored
+    assert abs(full[0]) < 0.01 * sigma, full
+    # and with δ = 0 the fit without motion terms is right: the bias is δ's
+    none = _headings(_one_way_plan(), ONE_WAY, quiet, replace(err, delta_x=0.0, delta_y=0.0), 1, ())
+    assert abs(none[0]) < 0.01 * sigma
+
+
+def test_monte_carlo_bias_with_and_without_motion_terms():
+    """Nav noise, 150 trials: ignoring δ = 2e-4 is biased by many standard errors; the full fit's
+    bias is within 3 standard errors of 0 (the standard error is σ/√trials)."""
+    nav, err, trials = P.GRADES["nav"], TOOL.MotionErrors(), 150
+    ignored = _headings(_one_way_plan(), ONE_WAY, nav, err, trials, ())
+    full = _headings(_one_way_plan(), ONE_WAY, nav, err, trials, ("misalignment",), seed=6)
+    se_ign = np.std(ignored, ddof=1) / math.sqrt(trials)
+    se_full = np.std(full, ddof=1) / math.sqrt(trials)
+    assert abs(np.mean(ignored)) > 6 * se_ign
+    assert abs(np.mean(full)) < 3 * se_full
+
+
+def test_both_directions_cancel_the_misalignment():
+    """A sweep of whole revolutions in both directions: the δ·ω column is orthogonal to every other
+    one (∫ω·cos α dt = ∫cos α dα = 0 per revolution, ∫ω dt = 0 over the pair), so even the fit that
+    ignores it is unbiased (noise-free)."""
+    quiet = replace(P.GRADES["nav"], arw_deg_rt_h=1e-7, bias_instability_dph=0.0, rrw_dph_rt_h=0.0,
+                    accel_noise_ug_rt_hz=0.0)  # fmt: skip
+    stage = P.Stage()
+    sweep = P.PlanSpec("sweep", 4, rate_deg_s=P.sweep_rate_for(240.0, 4, stage), order="alternating")
+    sigma = P.predict(sweep, P.GRADES["nav"], LAT, TILT, stage).sigma_deg
+    ignored = _headings(sweep, stage, quiet, TOOL.MotionErrors(), 1, ())
+    assert abs(ignored[0]) < 0.02 * sigma, ignored
+    sch = P.schedule(sweep, stage, 0.02)
+    a_mat, names = motion_design(sch.alpha_deg, sch.omega_dps, ("x", "y"))
+    cols = a_mat / np.linalg.norm(a_mat, axis=0)
+    gram = cols.T @ cols
+    d = [names.index("d_x"), names.index("d_y")]
+    others = [i for i in range(len(names)) if i not in d]
+    assert np.max(np.abs(gram[np.ix_(d, others)])) < 0.01
+
+
+def test_motion_terms_without_motion_are_one_clear_error():
+    alpha = np.repeat([0.0, 90.0, 180.0, 270.0], 10)
+    gyro = np.zeros((alpha.size, 2))
+    with pytest.raises(InputError, match="no motion"):
+        fit_motion(alpha, np.zeros_like(alpha), gyro)
+    with pytest.raises(InputError, match="start and end at rest"):
+        table_angle_from_z(np.zeros(5), 0.01, np.array([np.nan, 0, 0, 0, 0]))
+    with pytest.raises(InputError, match="motion terms"):
+        motion_design(alpha, np.zeros_like(alpha), ("x", "y"), ("wobble",))

@@ -1,0 +1,148 @@
+"""The plan model and planner (docs/estimators.md §11): its time accounting against issue 13's run,
+its σ against a Monte Carlo of per-sample data (tolerance from the Monte Carlo's own sampling
+error), the planner's choice, and `northfinder plan`'s output and one-line mistakes."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+
+import numpy as np
+import pytest
+
+from northfinder.cli import main
+from northfinder.errors import InputError
+from northfinder.estimators import plan as P
+from tests.helpers import REPO, only_line, run_cli
+
+
+def _tool():
+    spec = importlib.util.spec_from_file_location("plan_vs_limit", REPO / "tools" / "plan_vs_limit.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("plan_vs_limit", mod)  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+TOOL = _tool()
+LAT, TILT, HEADING, ELAPSED = 40.0, 2.0, 37.0, 240.0
+STAGE = P.Stage()
+
+
+def _spec(kind: str) -> P.PlanSpec:
+    if kind == "sweep":
+        return P.PlanSpec(kind, 4, rate_deg_s=P.sweep_rate_for(ELAPSED, 4, STAGE), order="alternating")
+    return P.PlanSpec(kind, 8, P.positions_dwell_for(ELAPSED, 8, STAGE))
+
+
+def _monte_carlo_sigma(spec: P.PlanSpec, sensor: P.Sensor, trials: int, seed: int, rate_hz: float = 50.0):
+    sch = P.schedule(spec, STAGE, 1.0 / rate_hz)
+    rng = np.random.default_rng(seed)
+    err = TOOL.MotionErrors()
+    out = []
+    for start in range(0, trials, 50):
+        k = min(50, trials - start)
+        gyro, accel = TOOL.simulate_samples(rng, k, sch, sensor, err, HEADING, LAT, TILT, 90.0)
+        if spec.kind == "positions":
+            h = TOOL.headings_positions(sch, gyro, accel, sensor, LAT)
+        else:
+            h = TOOL.headings_motion(sch, gyro, accel, sensor, LAT, ("misalignment",))
+        out.append(h - HEADING)
+    e = (np.concatenate(out) + 180.0) % 360.0 - 180.0
+    return float(np.std(e, ddof=1))
+
+
+def test_time_model_reproduces_todays_find():
+    """Issue 13: 8 × 20 s is 160 s of dwell in about 256 s of device time, σ ≈ 1.27 × the limit of
+    the elapsed time. The white part of the prediction is √(elapsed/dwell) × that limit."""
+    p = P.predict(P.PlanSpec("positions", 8, 20.0), P.GRADES["nav"], LAT, 0.0, STAGE)
+    assert 250.0 < p.elapsed_s < 260.0
+    assert p.used_s == pytest.approx(160.0, abs=0.5)
+    assert p.white_deg / p.limit_deg == pytest.approx(math.sqrt(p.elapsed_s / p.used_s), rel=0.01)
+    assert P.move_time_s(45.0, STAGE) == pytest.approx(2.5)  # 45/20 + 20/80
+
+
+def test_the_solvers_give_plans_of_the_asked_length():
+    for kind in P.KINDS:
+        sch = P.schedule(_spec(kind), STAGE, 0.01)
+        assert sch.elapsed_s == pytest.approx(ELAPSED, abs=0.2), kind
+
+
+@pytest.mark.parametrize("kind", P.KINDS)
+def test_prediction_matches_monte_carlo(kind):
+    """Nav grade with δ, scale factors, bias instability and RRW: the Monte Carlo σ over 300 trials
+    is within 3 sampling standard errors (1/√(2(M−1)) relative) of the prediction."""
+    trials = 300
+    pred = P.predict(_spec(kind), P.GRADES["nav"], LAT, TILT, STAGE).sigma_deg
+    mc = _monte_carlo_sigma(_spec(kind), P.GRADES["nav"], trials, seed=11)
+    assert abs(mc / pred - 1.0) < 3.0 / math.sqrt(2 * (trials - 1)), (mc, pred)
+
+
+@pytest.mark.parametrize("kind", ["positions", "sweep"])
+def test_drift_prediction_matches_monte_carlo(kind):
+    """A drifting gyro (bias instability 0.03 °/h over 100 s, RRW 0.15 °/h/√h): the drift part is as
+    large as the white one, so a wrong drift propagation (eq P3) would miss by far more than the
+    tolerance."""
+    sensor = P.Sensor(0.002, 0.03, 100.0, 0.15, 10.0)
+    pred = P.predict(_spec(kind), sensor, LAT, TILT, STAGE)
+    assert pred.drift_deg > 0.4 * pred.white_deg
+    trials = 300
+    mc = _monte_carlo_sigma(_spec(kind), sensor, trials, seed=12)
+    assert abs(mc / pred.sigma_deg - 1.0) < 3.0 / math.sqrt(2 * (trials - 1)), (mc, pred.sigma_deg)
+
+
+def test_planner_reaches_the_target_soonest_near_the_limit():
+    choice = P.choose_plan(P.GRADES["nav"], LAT, TILT, STAGE, target_std_deg=0.05)
+    best = choice.best
+    assert best.sigma_deg <= 0.05
+    assert best.spec.kind in ("positions+motion", "sweep")
+    assert best.ratio < 1.05
+    stop_and_go = min(p.elapsed_s for p in choice.alternatives if p.spec.kind == "positions")
+    assert best.elapsed_s < 0.8 * stop_and_go
+    assert all(p.sigma_deg <= 0.05 for p in choice.alternatives)
+
+
+def test_without_a_z_gyro_only_stop_and_go():
+    sensor = P.Sensor(0.002, gyro_axes="y")
+    choice = P.choose_plan(sensor, LAT, TILT, STAGE, time_budget_s=240.0)
+    assert {p.spec.kind for p in choice.alternatives} == {"positions"}
+    assert "z gyro" in choice.notes[0]
+    with pytest.raises(InputError, match="either a target"):
+        P.choose_plan(sensor, LAT, TILT, STAGE)
+
+
+def test_cli_prints_the_plan_and_its_time(tmp_path):
+    r = run_cli("plan", "--grade", "nav", "--latitude", "40", "--target-std", "0.05", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    head = r.stdout.splitlines()[0]
+    assert head.startswith("plan for σ ≤ 0.05°:") and "elapsed" in head and "predicted σ" in head
+    assert "alternatives" in r.stdout
+    r = run_cli("plan", "--grade", "nav", "--latitude", "40", "--time-budget", "240", "--gyro-axes", "y",
+                cwd=tmp_path)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "stop-and-go only: without a z gyro" in r.stdout
+    assert "sweep" not in r.stdout and "positions+motion" not in r.stdout
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["--grade", "nav", "--latitude", "95", "--target-std", "0.05"], "--latitude 95"),
+        (["--grade", "nav", "--latitude", "40", "--target-std", "-1"], "--target-std -1"),
+        (["--grade", "gold", "--latitude", "40", "--target-std", "0.05"], "--grade 'gold'"),
+        (["--latitude", "40", "--target-std", "0.05"], "give --grade"),
+        (["--arw", "abc", "--latitude", "40", "--target-std", "0.05"], "--arw 'abc': not a number"),
+        (["--grade", "nav", "--latitude", "40", "--time-budget", "60", "--gyro-axes", "q"],
+         "--gyro-axes 'q'"),
+        (["--grade", "nav", "--latitude", "40", "--time-budget", "60", "--stage-speed", "0"],
+         "--stage-speed 0"),
+        (["--grade", "nav", "--latitude", "40", "--time-budget", "5"], "no plan fits in 5 s"),
+        (["--grade", "consumer", "--latitude", "40", "--target-std", "0.0001"], "no plan reaches σ 0.0001°"),
+    ],
+)
+def test_cli_mistakes_are_one_line(argv, says, capsys):
+    assert main(["plan", *argv]) == 2
+    err = capsys.readouterr().err
+    line = only_line(err)
+    assert line.startswith("northfinder: error: ") and says in line, line
