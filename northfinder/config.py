@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from northfinder.align.limits import latitude_problem
+from northfinder.align.swaying import METHODS as SWAYING_METHODS
 from northfinder.errors import ConfigError
 from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG
 
@@ -25,6 +26,9 @@ IMU_RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
 ROT_FORMATS = ("DELTA", "RATE")
 ROT_UNITS = ("RAD", "DEG")
 ALIGN_MODES = ("swaying", "gnss")
+GNSS_ALIGN_MIN_DURATION_S = 10.0
+"""The GNSS alignment's shortest window [device s]: 5 s of levelling standing still, then the drive."""
+MAX_SWAY_PERIOD_S = 120.0
 CAN_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
 
 
@@ -102,6 +106,26 @@ class GnssConfig:
 
 
 @dataclass
+class SwayingConfig:
+    """`[swaying]`: `align --mode swaying` (its flags --duration, --method, --sway-period override)."""
+
+    duration_s: float = 300.0
+    """The alignment window [device s]: 300 s gives ~0.05° with a navigation-grade IMU."""
+    method: str = "cone"
+    """cone (constrained fit), cone-gls (plus a noise-weighted step) or circle (docs/swaying.md §4)."""
+    sway_period_s: float = 10.0
+    """The longest sway period [s]: the smoothing window is 4 of them, the window must hold 8."""
+
+
+@dataclass
+class GnssAlignmentConfig:
+    """`[gnss_alignment]`: `align --mode gnss` (--duration overrides)."""
+
+    duration_s: float = 300.0
+    """The alignment window [device s]: 5 s standing still for levelling, then the drive."""
+
+
+@dataclass
 class SiteConfig:
     """`[site]`: where the bench stands."""
 
@@ -145,6 +169,8 @@ class BenchConfig:
     imu: ImuConfig = field(default_factory=ImuConfig)
     accelerometer: AccelerometerConfig = field(default_factory=AccelerometerConfig)
     gnss: GnssConfig = field(default_factory=GnssConfig)
+    swaying: SwayingConfig = field(default_factory=SwayingConfig)
+    gnss_alignment: GnssAlignmentConfig = field(default_factory=GnssAlignmentConfig)
     site: SiteConfig = field(default_factory=SiteConfig)
     run: RunConfig = field(default_factory=RunConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
@@ -167,6 +193,8 @@ _SECTIONS = {
     "imu": ImuConfig,
     "accelerometer": AccelerometerConfig,
     "gnss": GnssConfig,
+    "swaying": SwayingConfig,
+    "gnss_alignment": GnssAlignmentConfig,
     "site": SiteConfig,
     "run": RunConfig,
     "estimator": EstimatorConfig,
@@ -364,6 +392,15 @@ def _validate_align(cfg: BenchConfig, need: Callable[[bool, str, Any, str], None
         need(math.isfinite(v) and v > 0, key, v, "use a number greater than 0")
     need(all(v > 0 for v in g.pos_std_m), "[gnss] pos_std_m", list(g.pos_std_m), "use three σ greater than 0")
     need(math.isfinite(g.latency_s) and 0 <= g.latency_s < 1, "[gnss] latency_s", g.latency_s, "use 0 … 1 s")
+    sw, ga = cfg.swaying, cfg.gnss_alignment
+    methods, p_max, d_min = ", ".join(SWAYING_METHODS), MAX_SWAY_PERIOD_S, GNSS_ALIGN_MIN_DURATION_S
+    need(sw.method in SWAYING_METHODS, "[swaying] method", sw.method, f"use one of {methods}")
+    need(math.isfinite(sw.sway_period_s) and 0 < sw.sway_period_s <= p_max, "[swaying] sway_period_s",
+         sw.sway_period_s, f"give the longest sway period in seconds (0 … {p_max:g})")
+    need(math.isfinite(sw.duration_s) and sw.duration_s > 0, "[swaying] duration_s", sw.duration_s,
+         "use a window greater than 0 s (at least 8 sway periods)")
+    need(math.isfinite(ga.duration_s) and ga.duration_s >= d_min, "[gnss_alignment] duration_s",
+         ga.duration_s, f"use at least {d_min:g} device seconds")
 
 
 def accel_eds_path(cfg: BenchConfig) -> Path | None:

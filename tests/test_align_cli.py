@@ -49,3 +49,30 @@ def test_an_existing_directory_given_as_out_is_never_removed(tmp_path, capsys):
     assert main(["align", "--mode", "swaying", "--config", str(cfg), "--out", str(out)]) == 3
     capsys.readouterr()
     assert out.is_dir()
+
+
+def test_the_bench_file_sets_the_align_defaults_and_flags_override_them(tmp_path, capsys):
+    """[swaying] and [gnss_alignment] are read by the one configuration; a value there is used
+    (a too-short window is named by file and key) and the flag wins over it."""
+    cfg = tmp_path / "bench.toml"
+    port = tmp_path / "no-such-tty"
+    head = f'[imu]\nport = "{port}"\n[site]\nlatitude_deg = 40.0\n'
+    out = tmp_path / "run"
+    sway = ["align", "--mode", "swaying", "--config", str(cfg), "--out", str(out)]
+    cfg.write_text(head + "[swaying]\nduration_s = 50.0\nsway_period_s = 10.0\n")
+    assert main(sway) == 2
+    line = northfinder_line(capsys.readouterr().err)
+    assert f"{cfg}: [swaying] duration_s = 50: too short for the swaying alignment" in line
+    assert "needs at least 80 device seconds" in line
+    # the flag overrides the file: past the checks, the (missing) port is the next mistake
+    assert main([*sway, "--duration", "90"]) == 3
+    assert str(port) in northfinder_line(capsys.readouterr().err)
+    assert not out.exists()
+    cfg.write_text(head + '[swaying]\nmethod = "kalman"\n')
+    assert main(sway) == 2
+    line = northfinder_line(capsys.readouterr().err)
+    assert "[swaying] method = 'kalman' is not allowed; use one of cone" in line
+    cfg.write_text(f'[imu]\nport = "{port}"\n[gnss]\nport = "{port}-g"\n[gnss_alignment]\nduration_s = 5.0\n')
+    assert main(["align", "--mode", "gnss", "--config", str(cfg), "--out", str(out)]) == 2
+    line = northfinder_line(capsys.readouterr().err)
+    assert "[gnss_alignment] duration_s = 5.0 is not allowed; use at least 10 device seconds" in line

@@ -31,6 +31,8 @@ def test_example_config_loads_with_its_documented_values():
     assert cfg.imu.rot_format == "DELTA" and cfg.imu.rot_units == "RAD"
     assert bench.require_align(cfg, "swaying") == 40.0 and bench.require_align(cfg, "swaying", -12.5) == -12.5
     assert math.isnan(bench.require_align(cfg, "gnss"))
+    assert (cfg.swaying.duration_s, cfg.swaying.method, cfg.swaying.sway_period_s) == (300.0, "cone", 10.0)
+    assert cfg.gnss_alignment.duration_s == 300.0
 
 
 @pytest.mark.parametrize(

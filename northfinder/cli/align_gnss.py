@@ -26,7 +26,7 @@ from northfinder.runs import base
 from northfinder.runs import gnss as gr
 from northfinder.runs import gnss_live as live
 
-MIN_DURATION_S = 10.0
+MIN_DURATION_S = config.GNSS_ALIGN_MIN_DURATION_S
 """5 s still for levelling (GnssAlignConfig.level_s) and some driving after it."""
 UNKNOWN_LEVER_ARM_STD_M = 1.0
 
@@ -97,9 +97,10 @@ def parse_lever_arm(text: str | None) -> tuple[float, float, float] | None:
     return values  # type: ignore[return-value]
 
 
-def _check(args: argparse.Namespace) -> float:
-    duration = gr.DEFAULT_DURATION_S if args.duration is None else float(args.duration)
-    if not (math.isfinite(duration) and duration >= MIN_DURATION_S):
+def _check(args: argparse.Namespace) -> float | None:
+    """Every flag mistake one can see before a device is opened; the --duration given, if any."""
+    duration = None if args.duration is None else float(args.duration)
+    if duration is not None and not (math.isfinite(duration) and duration >= MIN_DURATION_S):
         raise InputError(
             f"--duration {args.duration:g}: use at least {MIN_DURATION_S:g} device seconds "
             "(5 s standing still for levelling, then the drive; default 300)"
@@ -207,6 +208,7 @@ def _simulated_window(args: argparse.Namespace, rd: RunDir, duration: float, pri
 
 def _bench_window(
     args: argparse.Namespace,
+    bench: config.BenchConfig,
     rd: RunDir,
     duration: float,
     prior_heading: float | None,
@@ -214,7 +216,6 @@ def _bench_window(
 ) -> Any:
     """The IMU and GNSS receiver of the bench file ([imu], [gnss]: northfinder.config, one validation)."""
     lever = parse_lever_arm(args.lever_arm)
-    bench = config.load(args.config)
     config.require_align(bench, "gnss")
     g = bench.gnss
     prior = lever or g.lever_arm_m
@@ -249,13 +250,16 @@ def run(args: argparse.Namespace) -> int:
     duration = _check(args)
     prior_heading, prior_std = heading_prior(args)
     parse_lever_arm(args.lever_arm)
+    bench = config.load(args.config) if args.config else None  # flags override its [gnss_alignment]
+    if duration is None:
+        duration = (bench.gnss_alignment if bench is not None else config.GnssAlignmentConfig()).duration_s
     rd = RunDir(args.out or default_out())
     t_wall = time.monotonic()
     with base.removed_if_unstarted(rd, gr.OWN_FILES):  # a failed start leaves no empty directory
         if args.simulate:
             window = _simulated_window(args, rd, duration, prior_std)
         else:
-            window = _bench_window(args, rd, duration, prior_heading, prior_std)
+            window = _bench_window(args, bench, rd, duration, prior_heading, prior_std)
     t_read = time.monotonic()
     result = live.finish(rd, window, json_path=args.json)
     record_or_warn(rd.path, unit=getattr(args, "unit", None))  # the results history (an index)

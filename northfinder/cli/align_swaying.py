@@ -98,8 +98,11 @@ def parse_lever_arm(text: str | None) -> tuple[float, float, float] | None:
     return values  # type: ignore[return-value]
 
 
-def _check(args: argparse.Namespace) -> tuple[float, dict[str, list[list[float]]], float]:
-    """Every mistake one can see before a device is opened: (duration, sway, longest period)."""
+def _check(
+    args: argparse.Namespace,
+) -> tuple[float, dict[str, list[list[float]]], float, config.BenchConfig | None]:
+    """Every mistake one can see before a device is opened: (duration, sway, longest period, the
+    bench file if any). Flags override the bench file's [swaying]; without one, its defaults."""
     if bool(args.simulate) == bool(args.config):
         raise InputError("give either --config BENCH_TOML (a real IMU) or --simulate")
     if not args.simulate:
@@ -113,16 +116,22 @@ def _check(args: argparse.Namespace) -> tuple[float, dict[str, list[list[float]]
                 raise InputError(f"--{flag.replace('_', '-')} is for --simulate (the simulated ship){hint}")
         if args.fault:
             raise InputError("--fault is for --simulate")
+    bench = config.load(args.config) if args.config else None
+    section = bench.swaying if bench is not None else config.SwayingConfig()
     sway = sr.parse_sway(args.sway if args.sway is not None else sr.REFERENCE_SWAY) if args.simulate else {}
     parse_lever_arm(args.lever_arm)
-    period = args.sway_period if args.sway_period is not None else sr.longest_period_s(sway)
-    if not (math.isfinite(period) and 0.0 < period <= 120.0):
-        raise InputError(f"--sway-period {period:g}: give the longest sway period in seconds (0 … 120)")
-    duration = sr.DEFAULT_DURATION_S if args.duration is None else float(args.duration)
+    period = args.sway_period
+    if period is None:
+        period = sr.longest_period_s(sway, section.sway_period_s)
+    p_max = config.MAX_SWAY_PERIOD_S
+    if not (math.isfinite(period) and 0.0 < period <= p_max):
+        raise InputError(f"--sway-period {period:g}: give the longest sway period in seconds (0 … {p_max:g})")
+    duration = section.duration_s if args.duration is None else float(args.duration)
     need = minimum_duration_s(period)
     if not math.isfinite(duration) or duration < need:
+        where = f"{bench.source}: [swaying] duration_s =" if args.duration is None and bench else "--duration"
         raise InputError(
-            f"--duration {duration:g}: too short for the swaying alignment, which needs at least "
+            f"{where} {duration:g}: too short for the swaying alignment, which needs at least "
             f"{need:.0f} device seconds (two smoothing windows of 4 × the {period:g} s longest "
             "sway period); 300 s gives ~0.05° with a navigation-grade IMU"
         )
@@ -133,7 +142,7 @@ def _check(args: argparse.Namespace) -> tuple[float, dict[str, list[list[float]]
         and not (math.isfinite(args.time_scale) and args.time_scale > 0)
     ):
         raise InputError(f"--time-scale {args.time_scale:g}: use a factor greater than 0")
-    return duration, sway, float(period)
+    return duration, sway, float(period), bench
 
 
 def default_out() -> Path:
@@ -176,9 +185,10 @@ def _simulated_window(
         )
 
 
-def _bench_window(args: argparse.Namespace, rd: RunDir, duration: float, settings: dict[str, Any]) -> Any:
+def _bench_window(
+    args: argparse.Namespace, bench: config.BenchConfig, rd: RunDir, duration: float, settings: dict[str, Any]
+) -> Any:
     """The IMU of the bench file ([imu], [site]: northfinder.config, one validation; --latitude wins)."""
-    bench = config.load(args.config)
     latitude = config.require_align(bench, "swaying", args.latitude)
     imu = bench.imu
     settings.update(latitude_deg=latitude, height_m=bench.site.height_m, simulate=None)
@@ -196,17 +206,18 @@ def _bench_window(args: argparse.Namespace, rd: RunDir, duration: float, setting
 
 
 def run(args: argparse.Namespace) -> int:
-    duration, sway, period = _check(args)
+    duration, sway, period, bench = _check(args)
     rd = RunDir(args.out or default_out())
     t_wall = time.monotonic()
     # matplotlib takes a second or two to import: do it while the simulator or the IMU port starts
     threading.Thread(target=_preload_matplotlib, name="preload-matplotlib", daemon=True).start()
-    settings: dict[str, Any] = {"method": args.method or "cone", "max_sway_period_s": period}
+    method = args.method or (bench.swaying if bench is not None else config.SwayingConfig()).method
+    settings: dict[str, Any] = {"method": method, "max_sway_period_s": period}
     with base.removed_if_unstarted(rd, sr.OWN_FILES):  # a failed start leaves no empty directory
         if args.simulate:
             window = _simulated_window(args, rd, duration, sway, settings)
         else:
-            window = _bench_window(args, rd, duration, settings)
+            window = _bench_window(args, bench, rd, duration, settings)
     t_read = time.monotonic()
     result = sr.finish(rd, window, json_path=args.json)
     record_or_warn(rd.path, unit=getattr(args, "unit", None))  # the results history (an index)

@@ -38,6 +38,7 @@ from northfinder.align.gnss_ins import GnssAlignConfig, GnssAlignResult, GnssSer
 from northfinder.align.small_angle import align_gnss_small_angle
 from northfinder.codecs.kvh import KvhDecoder
 from northfinder.codecs.nmea import GnssFix, LocalEnu, checksum, fixes_to_arrays
+from northfinder.config import GnssAlignmentConfig
 from northfinder.constants import wrap_deg_180
 from northfinder.errors import InputError
 from northfinder.report import report_axes, save_report
@@ -53,7 +54,7 @@ GNSS_RX = "gnss.rx"
 TRUTH_LOG = "truth.jsonl"
 OWN_FILES = {CONFIG, IMU_RAW, IMU_RX, GNSS_NMEA, GNSS_RX, TRUTH_LOG}
 """What a run writes before its start event: a failed start that left only these is removed."""
-DEFAULT_DURATION_S = 300.0
+DEFAULT_DURATION_S = GnssAlignmentConfig.duration_s  # [gnss_alignment]'s default (northfinder.config)
 VEL_UP_STD_M_S = 100.0
 """NMEA carries no vertical speed (Up is 0 by convention): its σ says "not measured"."""
 VEL_UNKNOWN_STD_M_S = 1000.0

@@ -42,6 +42,7 @@ from northfinder.align.swaying import (
     quat_to_dcm,
     velocity_increments_ib0,
 )
+from northfinder.config import SwayingConfig
 from northfinder.constants import DEG, OMEGA_EARTH_RAD_S, STANDARD_GRAVITY_M_S2, wrap_deg_180
 from northfinder.errors import DeviceError, InputError
 from northfinder.report import report_axes, save_report
@@ -55,8 +56,8 @@ SCHEMA = "northfinder.align-swaying/1"
 TRUTH_LOG = "truth.jsonl"
 OWN_FILES = {CONFIG, IMU_RAW, TRUTH_LOG}
 """What a run writes before its start event: a failed start that left only these is removed."""
-DEFAULT_DURATION_S = 300.0
-DEFAULT_SWAY_PERIOD_S = 10.0
+DEFAULT_DURATION_S = SwayingConfig.duration_s  # [swaying]'s defaults (northfinder.config)
+DEFAULT_SWAY_PERIOD_S = SwayingConfig.sway_period_s
 """Longest sway period assumed on hardware unless --sway-period says otherwise (ship roll 6–12 s)."""
 REFERENCE_SWAY = "roll=10:8,pitch=5:6,yaw=3:10,heave=0.5:7"
 """Issue 5's reference scenario (the swaying-base paper's): roll 10°/8 s, pitch 5°/6 s, yaw 3°/10 s,
