@@ -151,7 +151,7 @@ def _print(choice: model.PlanChoice, sensor: model.Sensor, args: argparse.Namesp
     )
     for note in choice.notes:
         console.print(f"note: {note}")
-    t = Table(title="alternatives (best of each kind and n)")
+    t = Table(title="alternatives (best of each kind and n; * the chosen plan)")
     for col in ("kind", "schedule", "elapsed [s]", "gyro used [s]", "σ [°]", "white [°]", "drift [°]",
                 "limit(elapsed) [°]", "σ/limit"):  # fmt: skip
         t.add_column(col, justify="right" if "[" in col or col == "σ/limit" else "left")
@@ -159,6 +159,7 @@ def _print(choice: model.PlanChoice, sensor: model.Sensor, args: argparse.Namesp
         mark = "bold" if p is b else None
         cells = (p.elapsed_s, p.used_s, p.sigma_deg, p.white_deg, p.drift_deg, p.limit_deg, p.ratio)
         fmts = (".0f", ".0f", ".4f", ".4f", ".4f", ".4f", ".3f")
-        t.add_row(p.spec.kind, p.spec.describe(), *(format(c, f) for c, f in zip(cells, fmts, strict=True)),
-                  style=mark)  # fmt: skip
+        kind = ("* " if p is b else "") + p.spec.kind
+        text = [format(c, f) for c, f in zip(cells, fmts, strict=True)]
+        t.add_row(kind, p.spec.describe(), *text, style=mark)
     console.print(t)
