@@ -252,7 +252,7 @@ def main(argv=None) -> int:
         "gyro used s",
         "σ MC °",
         "bias °",
-        "|bias|/σ",
+        "abs(bias)/σ",
         "σ/limit(elapsed)",
         "σ predicted °",
         "MC/pred",
