@@ -6,5 +6,7 @@ shared base (northfinder.runs.base). Below the CLI, above the sequencer and the 
   `find` run (northfinder.runs.find.run_find); its statistics are pure numpy and sit with the
   estimators (northfinder.estimators.campaign_stats), its tables and figure with the CLI
   (northfinder.cli._campaign_report).
-The align runs (swaying, GNSS) still live in northfinder.align and move here next.
+- `swaying`: align --mode swaying (IMU alone on a swaying base), its result and replay;
+- `gnss` (result, time alignment, replay) and `gnss_live` (reading the IMU and the GNSS receiver
+  together): align --mode gnss. The mathematics they call is in northfinder.align.
 """
