@@ -290,13 +290,14 @@ def predict(spec: PlanSpec, sensor: Sensor, latitude_deg: float, tilt_deg: float
 def sweep_rate_for(elapsed_s: float, revolutions: int, stage: Stage) -> float:
     """The sweep rate [deg/s] whose plan lasts elapsed_s (eq P1 solved for the rate): each
     revolution takes P = (T − settle)/n − settle = 360/r + r/a, so r = a/2·(P − √(P² − 1440/a)).
-    Capped at the stage speed; 0 when the revolutions cannot fit."""
+    0 when the revolutions cannot fit in elapsed_s at the stage's speed."""
     per = (elapsed_s - stage.settle_s) / revolutions - stage.settle_s
     a = stage.accel_deg_s2
     disc = per * per - 4.0 * 360.0 / a
     if per <= 0 or disc < 0:
         return 0.0
-    return min(a / 2.0 * (per - math.sqrt(disc)), stage.speed_deg_s)
+    rate = a / 2.0 * (per - math.sqrt(disc))
+    return rate if rate <= stage.speed_deg_s * (1.0 + 1e-9) else 0.0
 
 
 def positions_dwell_for(elapsed_s: float, n: int, stage: Stage) -> float:
@@ -310,7 +311,7 @@ def positions_dwell_for(elapsed_s: float, n: int, stage: Stage) -> float:
 
 
 POSITION_COUNTS = (4, 6, 8, 12, 16)
-SWEEP_REVOLUTIONS = (2, 4, 6, 8)
+SWEEP_REVOLUTIONS = (2, 4, 8, 16, 32, 64)
 TIE = 0.02
 """Relative margin within which plans count as equally fast (or equally good)."""
 
