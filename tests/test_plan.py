@@ -67,6 +67,9 @@ def test_the_solvers_give_plans_of_the_asked_length():
     for kind in P.KINDS:
         sch = P.schedule(_spec(kind), STAGE, 0.01)
         assert sch.elapsed_s == pytest.approx(ELAPSED, abs=0.2), kind
+    # a sweep is never planned faster than the stage: 64 revolutions do not fit in 1000 s at 20 °/s
+    assert P.sweep_rate_for(1000.0, 64, STAGE) == 0.0
+    assert 0.0 < P.sweep_rate_for(1000.0, 16, STAGE) <= STAGE.speed_deg_s
 
 
 @pytest.mark.parametrize("kind", P.KINDS)
@@ -101,6 +104,10 @@ def test_planner_reaches_the_target_soonest_near_the_limit():
     stop_and_go = min(p.elapsed_s for p in choice.alternatives if p.spec.kind == "positions")
     assert best.elapsed_s < 0.8 * stop_and_go
     assert all(p.sigma_deg <= 0.05 for p in choice.alternatives)
+    # a long target still has motion plans among its alternatives, and the best is near the limit
+    long = P.choose_plan(P.GRADES["nav"], LAT, TILT, STAGE, target_std_deg=0.02)
+    assert {"sweep", "positions+motion"} <= {p.spec.kind for p in long.alternatives}
+    assert long.best.ratio < 1.05 and long.best.sigma_deg <= 0.02
 
 
 def test_without_a_z_gyro_only_stop_and_go():
