@@ -261,6 +261,8 @@ def from_dict(data: dict[str, Any], source: str = "<dict>") -> BenchConfig:
                 raise ConfigError(
                     f"{source}: unknown key [{section}] {name}; allowed: {', '.join(sorted(names))}"
                 )
+            if value is None and getattr(target, name) is None:
+                continue  # an optional key left out (to_dict writes it as null into config.json)
             setattr(target, name, _coerce(section, name, value, getattr(target, name), source))
     return cfg.validate()
 
