@@ -30,6 +30,7 @@ from northfinder.codecs.canopen import decode_accel_frames
 from northfinder.codecs.kvh import decode_imu_stream
 from northfinder.constants import wrap_deg_180
 from northfinder.errors import InputError, RunAborted, RunDamaged
+from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG
 from northfinder.estimators.means import PositionMeans, position_means
 from northfinder.history import record_or_warn
 from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session_file
@@ -84,8 +85,10 @@ def check_request(req: FindRequest) -> None:
         raise InputError(f"--positions {req.positions}: use at least 3 positions")
     if req.dwell is not None and not (math.isfinite(req.dwell) and req.dwell > 0):
         raise InputError(f"--dwell {req.dwell:g}: use a dwell greater than 0 s")
-    if req.latitude is not None and not -89.0 <= req.latitude <= 89.0:
-        raise InputError(f"--latitude {req.latitude:g}: use −89…89 degrees")
+    lim = MAX_ABS_LATITUDE_DEG
+    if req.latitude is not None and not (math.isfinite(req.latitude) and -lim <= req.latitude <= lim):
+        raise InputError(f"--latitude {req.latitude:g}: use −{lim:g}…{lim:g} degrees (north positive; within "
+                         f"{90 - lim:g}° of a pole the heading is undefined)")
     if req.fault and req.config:
         msg = f"--fault {req.fault[0]}: faults are injected by the simulator; use them with --simulate"
         raise InputError(msg)
