@@ -327,7 +327,7 @@ def test_hardware_path_on_a_moving_vehicle_refuses_with_one_line(tmp_path, capsy
 
 def test_the_summary_says_which_start_was_used():
     """A prior is named with its σ and that it is held while standing; no σ says 'unknown'."""
-    from northfinder.cli.align_gnss import start_text
+    from northfinder.cli._align_summary import start_text
 
     assert "prior 40.00° ± 5° (1σ), held while standing still" == start_text(
         {"initial_heading_deg": 40.0, "initial_heading_std_deg": 5.0}
@@ -342,7 +342,7 @@ def test_the_summary_counts_converged_and_below_1deg_from_the_same_start(e2e_run
     time shown is the result's plus filter_start_s (the levelling), for both filters."""
     from rich.console import Console
 
-    from northfinder.cli.align_gnss import print_summary
+    from northfinder.cli._align_summary import print_gnss_summary as print_summary
 
     _, _, result, _ = e2e_run
     assert result["filter_start_s"] >= 5.0  # the levelling is counted in the shift

@@ -19,6 +19,7 @@ from typing import Any
 
 from northfinder import config
 from northfinder.cli import _common
+from northfinder.cli._align_summary import print_gnss_summary
 from northfinder.errors import InputError
 from northfinder.history import record_or_warn
 from northfinder.rundir import RunDir
@@ -263,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
     t_read = time.monotonic()
     result = live.finish(rd, window, json_path=args.json)
     record_or_warn(rd.path, unit=getattr(args, "unit", None))  # the results history (an index)
-    print_summary(result, run_dir=rd.path)
+    print_gnss_summary(result, run_dir=rd.path)
     t_end = time.monotonic()
     print(
         f"wall time {t_end - t_wall:.1f} s: devices (and simulator) {t_read - t_wall:.1f} s, "
@@ -271,98 +272,3 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     return 0
-
-
-def _f(v: Any, fmt: str, none: str = "—") -> str:
-    return none if v is None else format(v, fmt)
-
-
-def from_window_start(result: dict[str, Any], after_filter_start_s: float | None) -> float | None:
-    """A time counted from the filter's start (`converged_after_s`) counted instead from the first
-    IMU sample, as `time_below_1deg_s` is: both filters start at the same GNSS update
-    (`filter_start_s`, the first after the levelling), so one shift serves both."""
-    return None if after_filter_start_s is None else after_filter_start_s + result["filter_start_s"]
-
-
-def start_text(result: dict[str, Any]) -> str:
-    """Which heading start the filter used: a prior with its σ, or unknown (the first turn decides)."""
-    psi0, std = result["initial_heading_deg"], result.get("initial_heading_std_deg")
-    if std is None:
-        return f"heading unknown (filter started at {psi0:.2f}°, uniform prior; the first turn decides)"
-    return f"prior {psi0:.2f}° ± {std:g}° (1σ), held while standing still"
-
-
-def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
-    """The rich summary: heading ± σ, convergence, lever arm, both filters, truth and errors, counters."""
-    from rich.table import Table
-
-    console = _common.summary_console(console, 132)
-    head = _common.summary_head("northfinder align --mode gnss", result)
-    head.add_row("start", start_text(result))
-    head.add_row(
-        "converged after",
-        f"{_f(from_window_start(result, result['converged_after_s']), '.1f')} s (1σ < 1° from then on; "
-        f"from the first IMU sample, the filter started at {result['filter_start_s']:.1f} s)",
-    )
-    la, las = result["lever_arm_m"], result["lever_arm_std_m"]
-    head.add_row(
-        "lever arm",
-        "(" + ", ".join(f"{v:+.3f}" for v in la) + ") m ± (" + ", ".join(f"{v:.3f}" for v in las) + ")",
-    )
-    head.add_row("pitch, roll", f"{result['pitch_deg']:+.3f}°, {result['roll_deg']:+.3f}°")
-    head.add_row(
-        "device time", f"{result['duration_device_s']:.1f} s, {result['gnss']['updates']} GNSS updates"
-    )
-    ta = result["time_alignment"]
-    extra = (
-        f" (host stamps would say {ta['host_minus_truth_s'] * 1e3:+.1f} ms)"
-        if "host_minus_truth_s" in ta
-        else ""
-    )
-    head.add_row("time alignment", f"{ta['method']}{extra}")
-    if "truth" in result:
-        tr = result["truth"]
-        _common.add_error_rows(
-            head, result, f"heading {tr['heading_deg']:.4f}° (at the start {tr['heading_at_start_deg']:.4f}°)"
-        )
-        head.add_row(
-            "position error",
-            f"{_f(result.get('position_error_m'), '.2f')} m; lever arm off by "
-            f"{_f(result.get('lever_arm_error_m'), '.3f')} m",
-        )
-    _common.print_head(console, head, result)
-    t = Table(
-        title="both filters on the same data (* = the result); times from the first IMU sample",
-        caption="converged: 1σ < 1° to the end; <1°, <0.5°: the true error below it to the end",
-    )
-    for col in (
-        "filter",
-        "heading [deg]",
-        "1σ [deg]",
-        "converged [s]",
-        "error [deg]",
-        "<1° after [s]",
-        "<0.5° after [s]",
-    ):
-        t.add_column(col, justify="right")
-    for name, m in result["methods"].items():
-        t.add_row(
-            name + (" *" if name == result["method"] else ""),
-            f"{m['heading_deg']:.4f}",
-            f"{m['heading_std_deg']:.4f}",
-            _f(from_window_start(result, m["converged_after_s"]), ".1f"),
-            _f(m.get("error_deg"), "+.4f"),
-            _f(m.get("time_below_1deg_s"), ".1f"),
-            _f(m.get("time_below_0p5deg_s"), ".1f"),
-        )
-    console.print(t)
-    s = result["gnss"]["stats"]
-    i = result["imu"]["stats"]
-    console.print(
-        f"NMEA: {s['sentences']} sentences, {s['fixes']} fixes, bad checksum {s['bad_checksum']}, "
-        f"truncated {s['truncated']}, no-fix {s['no_fix']}, malformed {s['malformed']}, "
-        f"missed epochs {s['missed_epochs']}; IMU: {result['imu']['samples']} samples, lost "
-        f"{result['imu']['lost_samples']}, bad CRC {i['bad_crc']}"
-    )
-    if run_dir is not None:
-        console.print(f"run directory: {run_dir}")

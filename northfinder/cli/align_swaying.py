@@ -22,6 +22,7 @@ from typing import Any
 from northfinder import config
 from northfinder.align.swaying import METHODS, minimum_duration_s
 from northfinder.cli import _common
+from northfinder.cli._align_summary import print_swaying_summary
 from northfinder.errors import InputError
 from northfinder.history import record_or_warn
 from northfinder.rundir import RunDir
@@ -221,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
     t_read = time.monotonic()
     result = sr.finish(rd, window, json_path=args.json)
     record_or_warn(rd.path, unit=getattr(args, "unit", None))  # the results history (an index)
-    print_summary(result, run_dir=rd.path)
+    print_swaying_summary(result, run_dir=rd.path)
     t_end = time.monotonic()
     print(
         f"wall time {t_end - t_wall:.1f} s: device (and simulator) {t_read - t_wall:.1f} s, estimator and "
@@ -229,48 +230,3 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     return 0
-
-
-def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
-    """The rich summary: heading ± σ, pitch, roll, truth and error, the coarse alignment for contrast."""
-    from rich.table import Table
-
-    console = _common.summary_console(console, 120)
-    head = _common.summary_head("northfinder align --mode swaying", result)
-    head.add_row(
-        "pitch, roll",
-        f"{result['pitch_deg']:+.3f}° ± {result['pitch_std_deg']:.4f}°, "
-        f"{result['roll_deg']:+.3f}° ± {result['roll_std_deg']:.4f}° (at the end of the window)",
-    )
-    imu = result["imu"]
-    head.add_row(
-        "device time",
-        f"{result['duration_device_s']:.1f} s, {imu['samples']} samples, lost "
-        f"{imu['lost_samples']}, bad CRC {imu['stats']['bad_crc']}",
-    )
-    if "truth" in result:
-        tr = result["truth"]
-        _common.add_error_rows(
-            head,
-            result,
-            f"heading {tr['heading_deg']:.4f}°, pitch {tr['pitch_deg']:+.3f}°, roll "
-            f"{tr['roll_deg']:+.3f}° at device time {tr['t_device_s']:.3f} s",
-        )
-    _common.print_head(console, head, result)
-    t = Table(title="on the same samples (* = the result)")
-    for col in ("method", "heading [deg]", "1σ [deg]", "error [deg]"):
-        t.add_column(col, justify="right")
-    for name, m in result["methods"].items():
-        err = m.get("error_deg")
-        t.add_row(
-            name + (" *" if name == result["method"] else ""),
-            f"{m['heading_deg']:.4f}",
-            "—" if m["heading_std_deg"] is None else f"{m['heading_std_deg']:.4f}",
-            "—" if err is None else f"{err:+.4f}",
-        )
-    console.print(t)
-    cov = result.get("sigma_covers")
-    if cov:
-        console.print(f"1σ covers: {'; '.join(cov['covers'])}. Not in it: {'; '.join(cov['omits'])}.")
-    if run_dir is not None:
-        console.print(f"run directory: {run_dir}")

@@ -17,16 +17,17 @@ from pathlib import Path
 from typing import Any
 
 from northfinder import config as bench
+from northfinder.cli import _align_summary
 from northfinder.cli._summary import print_summary
 from northfinder.rundir import RESULT, RunDir, jsonable
 from northfinder.runs.find import replay
 
 INCOMPLETE_EXIT = 1
 
-# run kind -> (module with the replay function, its name, module with print_summary)
+# run kind -> (module with the replay function, its name, its printer in cli/_align_summary.py)
 ALIGN_REPLAYS = {
-    "align-gnss": ("northfinder.runs.gnss", "replay_gnss_run", "northfinder.cli.align_gnss"),
-    "align-swaying": ("northfinder.runs.swaying", "replay_swaying_run", "northfinder.cli.align_swaying"),
+    "align-gnss": ("northfinder.runs.gnss", "replay_gnss_run", "print_gnss_summary"),
+    "align-swaying": ("northfinder.runs.swaying", "replay_swaying_run", "print_swaying_summary"),
 }
 
 
@@ -68,7 +69,7 @@ def _run_kind(run_dir: str | Path) -> str:
 
 
 def _replay_align(args: argparse.Namespace, kind: str) -> int:
-    module_name, function_name, summary_module = ALIGN_REPLAYS[kind]
+    module_name, function_name, summary_name = ALIGN_REPLAYS[kind]
     result, complete = getattr(importlib.import_module(module_name), function_name)(args.run_dir)
     rd = RunDir(args.run_dir, create=False)
     again = json.loads(json.dumps(jsonable(result)))
@@ -85,7 +86,7 @@ def _replay_align(args: argparse.Namespace, kind: str) -> int:
     shown = f"{heading:.6f}° ± {sigma:.6f}°" if heading is not None and sigma is not None else "none"
     print(f"{rd.path}: {state} {kind} run; replayed heading {shown}, {verdict}")
     if not args.quiet:
-        importlib.import_module(summary_module).print_summary(again)
+        getattr(_align_summary, summary_name)(again)
     if args.json:
         RunDir(Path(args.json).parent, create=True).write_json(Path(args.json).name, again)
     return 0 if complete else INCOMPLETE_EXIT
