@@ -234,6 +234,9 @@ class Sequencer:
         self.dwell_grid_s = float(dwell_grid_s)
         self.settle_margin_s = float(settle_margin_s)
         self._move_deg = 0.0
+        self._homing_travel_deg = 0.0
+        """How far homing turned the table before the first position: its motion may still be in the
+        IMU bytes a USB link holds back, so the first settle waits to see it (|Δα|, deg)."""
         self.positions: list[PositionMeans] = []
         self._plan: list[float] = []
 
@@ -363,8 +366,22 @@ class Sequencer:
                     errors=st.errors,
                 )
             self._event({"event": "home", "state": st.state_name})
+            before_deg = self._encoder_or_none()
+            self.imu.discard_pending()  # what is left is from before the home command
             self.turntable.home(wait=False)
+            self._poll_ready("homing (OR)")
+            after_deg = self._encoder_or_none()
+            # unknown start: assume a visible travel (the first settle then waits for motion in gyro z)
+            known = before_deg is not None and after_deg is not None
+            self._homing_travel_deg = abs(after_deg - before_deg) if known else 360.0
+            return
         self._poll_ready("homing (OR)")
+
+    def _encoder_or_none(self) -> float | None:
+        try:
+            return float(self.turntable.position_deg())
+        except (DeviceError, ValueError):
+            return None
 
     def _read_imu(self, n: int) -> Any:
         wait_s = 2.0 * n / self.imu.rate_hz + self.read_timeout_s
@@ -548,12 +565,17 @@ class Sequencer:
             try:
                 here = float(self.turntable.position_deg())
                 self._move_deg = target - here
+                # homing's motion, not yet seen in the IMU data, counts as part of the first move;
+                # the data since the home command are kept for that (discarded before it)
+                travel_deg = abs(self._move_deg) + self._homing_travel_deg
                 self.accel.stop_node()  # quiet during the move; started again after the settle
-                self.imu.discard_pending()  # what is left is from before the move command
+                if not self._homing_travel_deg:
+                    self.imu.discard_pending()  # what is left is from before the move command
                 self._move(target)
                 self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
                 self._start_accelerometer()  # at READY: its first samples are skipped by the settle time
-                settle = self.settle(expect_motion=abs(target - here) >= MIN_VISIBLE_MOVE_DEG)
+                settle = self.settle(expect_motion=travel_deg >= MIN_VISIBLE_MOVE_DEG, move_deg=travel_deg)
+                self._homing_travel_deg = 0.0
                 hb0, emcy0 = self._accel_counts()
                 blocks, accel_block = self.dwell(i, target, settle.settle_s)
                 hb1, emcy1 = self._accel_counts()

@@ -157,7 +157,10 @@ def test_frames_flagged_not_valid_are_excluded_counted_and_cost_no_remeasure(tmp
 
 @pytest.mark.skipif(not _sim_knows("link_hold_period_s"), reason="firmware_sim has no --link-hold yet")
 def test_bytes_held_back_and_burst_lose_nothing_and_cost_no_remeasure(tmp_path):
-    run_dir, result, probe = _find(tmp_path, FAST_STAGE + "link_hold_period_s = 3.0\nlink_hold_ms = 200.0\n")
+    # 600 ms (host) held back every device second at 10x: the bytes arrive up to 6 device s late, longer
+    # than homing (137° at 90 °/s) — at READY the host still holds only samples from
+    # before the home command, so a settle that trusted them would start the dwell on the slew
+    run_dir, result, probe = _find(tmp_path, FAST_STAGE + "link_hold_period_s = 1.0\nlink_hold_ms = 600.0\n")
     imu = result["faults"]["imu"]
     assert imu["lost_samples"] == 0 and imu["stalls"] == 0 and imu["sequence_gaps"] == 0
     _check(run_dir, result, gyro_axes=2)
