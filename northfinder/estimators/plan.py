@@ -21,7 +21,6 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.signal import lfilter
 
 from northfinder.constants import OMEGA_EARTH_RAD_S
 from northfinder.errors import InputError
@@ -199,6 +198,8 @@ def _drift_cov(p_axis: np.ndarray, dt: float, sensor: Sensor) -> np.ndarray:
         cov += (sensor.rrw_dph_rt_h / 60.0) ** 2 * dt * (g @ g.T)
     if sensor.bias_instability_dph > 0.0:
         phi = math.exp(-dt / sensor.bi_correlation_s)
+        from scipy.signal import lfilter  # here, not at import: scipy.signal costs ~1 s of every CLI start
+
         g = lfilter([1.0], [1.0, -phi], p_axis[:, ::-1], axis=1)[:, ::-1]
         cov += sensor.bias_instability_dph**2 * (
             np.outer(g[:, 0], g[:, 0]) + (1 - phi**2) * (g[:, 1:] @ g[:, 1:].T)
