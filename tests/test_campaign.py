@@ -30,7 +30,8 @@ from northfinder.estimators.campaign_stats import deviation_deg
 
 pytestmark = pytest.mark.slow
 
-DWELL_S = 3.0
+DWELL_S = 2.0
+POSITIONS = 4  # short finds: the campaign, not the find, is under test (test_e2e_find runs 8)
 TIME_SCALE = 10.0
 SIM_TOML = (
     "stage_speed_dps = 90.0\nstage_accel_dps2 = 360.0\nstage_ringing_decay_s = 0.1\naccel_rate_hz = 50.0\n"
@@ -43,8 +44,8 @@ def _campaign_argv(tmp_path: Path, out: Path) -> list[str]:
     (tmp_path / "sim.toml").write_text(SIM_TOML)
     return [
         "campaign", "--simulate", "--repeat", str(REPEAT), "--headings", ",".join(map(str, HEADINGS)),
-        "--dwell", str(DWELL_S), "--time-scale", str(TIME_SCALE), "--sim-config", str(tmp_path / "sim.toml"),
-        "--unit", "SN-T1", "--out", str(out), "--no-report",
+        "--positions", str(POSITIONS), "--dwell", str(DWELL_S), "--time-scale", str(TIME_SCALE),
+        "--sim-config", str(tmp_path / "sim.toml"), "--unit", "SN-T1", "--out", str(out), "--no-report",
     ]  # fmt: skip
 
 
@@ -59,7 +60,7 @@ def _check_complete(out: Path) -> dict:
     errors = []
     for r in c["runs"]:
         res = json.loads((out / r["run_dir"] / "result.json").read_text())
-        assert res["complete"] and res["positions_measured"] == 8
+        assert res["complete"] and res["positions_measured"] == POSITIONS
         ref = HEADINGS[r["step"]]
         assert r["reference_deg"] == ref == res["truth"]["heading_deg"]  # simulated: truth = reference
         assert r["heading_deg"] == res["heading_deg"] and r["heading_std_deg"] == res["heading_std_deg"]
@@ -179,8 +180,8 @@ def test_real_bench_campaign_prompts_and_records_the_reference(tmp_path):
             "bus_options = {sleep_after_open = 0.05}\n[site]\nlatitude_deg = 40.0\n"
         )
         out = tmp_path / "camp"
-        argv = ["campaign", "--config", str(bench), "--reference-deg", "37", "--repeat", "2",
-                "--dwell", str(DWELL_S), "--out", str(out), "--no-report"]  # fmt: skip
+        argv = ["campaign", "--config", str(bench), "--reference-deg", "37", "--repeat", "2", "--positions",
+                str(POSITIONS), "--dwell", str(DWELL_S), "--out", str(out), "--no-report"]  # fmt: skip
         proc = _run_with_stdin(argv, tmp_path, "\n")
     finally:
         sim.terminate()

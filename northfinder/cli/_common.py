@@ -1,5 +1,5 @@
 """What the two `northfinder align` CLIs (--mode swaying, --mode gnss) share: argparse helpers, the
-device-time progress bar handed to the runs as their view, and the summary's rich rows.
+device-time progress bar handed to the runs as their view, the summary's rich rows and the end of a run.
 
 A shared CLI module, not a subcommand: `cli/align_swaying.py`, `cli/align_gnss.py` (and replay,
 through them) import it, so no subcommand module imports another.
@@ -101,3 +101,32 @@ def print_head(console: Any, head: Any, result: dict[str, Any]) -> None:
     if not result.get("complete", True):
         head.add_row("[red]INCOMPLETE[/]", "stopped before the end of the window")
     console.print(head)
+
+
+def finish_and_print(
+    args: argparse.Namespace,
+    rd: Any,
+    window: Any,
+    finish: Any,
+    print_summary: Any,
+    t_wall: float,
+    analysis: str,
+) -> int:
+    """The end of an align run in both modes: the run's `finish` (estimators, result, report),
+    the results history, the summary, and the wall time split into acquisition and `analysis`."""
+    import sys
+    import time
+
+    from northfinder.history import record_or_warn
+
+    t_read = time.monotonic()
+    result = finish(rd, window, json_path=args.json)
+    record_or_warn(rd.path, unit=getattr(args, "unit", None))  # the results history (an index)
+    print_summary(result, run_dir=rd.path)
+    t_end = time.monotonic()
+    print(
+        f"wall time {t_end - t_wall:.1f} s: devices (and simulator) {t_read - t_wall:.1f} s, "
+        f"{analysis} {t_end - t_read:.1f} s",
+        file=sys.stderr,
+    )
+    return 0

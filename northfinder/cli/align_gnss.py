@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -21,7 +20,6 @@ from northfinder import config
 from northfinder.cli import _common
 from northfinder.cli._align_summary import print_gnss_summary
 from northfinder.errors import InputError
-from northfinder.history import record_or_warn
 from northfinder.rundir import RunDir
 from northfinder.runs import base
 from northfinder.runs import gnss as gr
@@ -261,14 +259,5 @@ def run(args: argparse.Namespace) -> int:
             window = _simulated_window(args, rd, duration, prior_std)
         else:
             window = _bench_window(args, bench, rd, duration, prior_heading, prior_std)
-    t_read = time.monotonic()
-    result = live.finish(rd, window, json_path=args.json)
-    record_or_warn(rd.path, unit=getattr(args, "unit", None))  # the results history (an index)
-    print_gnss_summary(result, run_dir=rd.path)
-    t_end = time.monotonic()
-    print(
-        f"wall time {t_end - t_wall:.1f} s: devices (and simulator) {t_read - t_wall:.1f} s, "
-        f"both filters and the report {t_end - t_read:.1f} s",
-        file=sys.stderr,
-    )
-    return 0
+    return _common.finish_and_print(args, rd, window, live.finish, print_gnss_summary, t_wall,
+                                    "both filters and the report")

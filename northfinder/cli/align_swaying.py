@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import threading
 import time
 from dataclasses import asdict
@@ -24,7 +23,6 @@ from northfinder.align.swaying import METHODS, minimum_duration_s
 from northfinder.cli import _common
 from northfinder.cli._align_summary import print_swaying_summary
 from northfinder.errors import InputError
-from northfinder.history import record_or_warn
 from northfinder.rundir import RunDir
 from northfinder.runs import base
 from northfinder.runs import swaying as sr
@@ -219,14 +217,5 @@ def run(args: argparse.Namespace) -> int:
             window = _simulated_window(args, rd, duration, sway, settings)
         else:
             window = _bench_window(args, bench, rd, duration, settings)
-    t_read = time.monotonic()
-    result = sr.finish(rd, window, json_path=args.json)
-    record_or_warn(rd.path, unit=getattr(args, "unit", None))  # the results history (an index)
-    print_swaying_summary(result, run_dir=rd.path)
-    t_end = time.monotonic()
-    print(
-        f"wall time {t_end - t_wall:.1f} s: device (and simulator) {t_read - t_wall:.1f} s, estimator and "
-        f"report {t_end - t_read:.1f} s",
-        file=sys.stderr,
-    )
-    return 0
+    return _common.finish_and_print(args, rd, window, sr.finish, print_swaying_summary, t_wall,
+                                    "estimator and report")

@@ -175,6 +175,77 @@ def _heading_std_rad(method, params, cov, g_local_g, omega_h) -> np.ndarray:
     return np.sqrt(np.einsum("...i,...ij,...j->...", jac, cov, jac))
 
 
+def _checked_method_latitude_angles(
+    method: str, latitude_deg: float, table_angle_deg
+) -> tuple[float, np.ndarray]:
+    """The method's name, the latitude inside MAX_ABS_LATITUDE_DEG and ≥ 3 finite table angles."""
+    if method not in METHODS:
+        raise InputError(f"method must be one of {list(METHODS)}, got {method!r}")
+    lat = float(latitude_deg)
+    if not np.isfinite(lat) or abs(lat) > MAX_ABS_LATITUDE_DEG:
+        raise InputError(
+            f"latitude_deg = {latitude_deg}: gyro north finding needs |latitude| ≤ {MAX_ABS_LATITUDE_DEG}° "
+            "(the horizontal Earth rate vanishes at the poles)"
+        )
+    alpha_deg = np.asarray(table_angle_deg, dtype=float)
+    if alpha_deg.ndim != 1 or alpha_deg.size < 3:
+        raise InputError(f"table_angle_deg: need at least 3 table positions, got shape {alpha_deg.shape}")
+    if not np.all(np.isfinite(alpha_deg)):
+        raise InputError("table_angle_deg: contains NaN or inf")
+    return lat, alpha_deg
+
+
+def _checked_gravity(fx: np.ndarray, fy: np.ndarray, fz: np.ndarray | None, g_local_g: float,
+                     accel_tolerance: float) -> np.ndarray:
+    """|f| per trial [g] — the accelerometer means must be in g and the base still: with a z axis
+    |f| within `accel_tolerance` of the local gravity and z up; without one, the horizontal part
+    below gravity (NaN is returned for |f| then: it is not measured)."""
+    if fz is not None:
+        mag = np.sqrt(fx**2 + fy**2 + fz**2)
+        bad = np.abs(mag / g_local_g - 1.0) > accel_tolerance
+        if np.any(bad):
+            m = float(mag[np.argmax(bad)])
+            raise InputError(
+                f"accel_g: |f| = {m:.4g} g is far from the local gravity {g_local_g:.5f} g ("
+                f"{accel_tolerance:.0%}); pass accelerometer means in g (not m/s²) and keep the base still"
+            )
+        if np.any(fz <= 0.0):
+            raise InputError("accel_g: the z axis reads negative gravity; mount the instrument z-up")
+        return mag
+    horizontal = np.sqrt(fx**2 + fy**2)
+    if np.any(horizontal >= g_local_g):
+        raise InputError(
+            f"accel_g: the horizontal specific force is {float(horizontal.max()):.4g} g, not below the local "
+            f"gravity {g_local_g:.5f} g; pass the means in g and keep the base still"
+        )
+    return np.full(np.shape(fx), np.nan)
+
+
+def _checked_tilt_rad(up: np.ndarray, tilt_limit_deg: float) -> np.ndarray:
+    """The table's tilt ε = arccos(up_z) per trial, refused above `tilt_limit_deg`."""
+    tilt = np.arccos(np.clip(up[..., 2], -1.0, 1.0))
+    if np.any(np.rad2deg(tilt) > tilt_limit_deg):
+        raise InputError(
+            f"accel_g: table tilt {np.rad2deg(tilt.max()):.2f}° exceeds the limit {tilt_limit_deg}°; "
+            "level the base (or raise tilt_limit_deg)"
+        )
+    return tilt
+
+
+def _check_earth_rate(wx: np.ndarray, wy: np.ndarray, up: np.ndarray, lat_deg: float) -> None:
+    """The fitted horizontal rate must be near Ωe·cos L (0.05…3×): else the means are not in deg/h
+    or the base moved."""
+    omega_n = OMEGA_EARTH_RAD_S * np.cos(np.deg2rad(lat_deg))
+    omega_h = OMEGA_EARTH_RAD_S * np.sin(np.deg2rad(lat_deg))
+    horiz = np.hypot(wx - omega_h * up[..., 0], wy - omega_h * up[..., 1]) / omega_n
+    off = (horiz > 3.0) | (horiz < 0.05)
+    if np.any(off):
+        raise InputError(
+            f"gyro_dph: the fitted horizontal rate is {float(horiz[np.argmax(off)]):.3g} × the Earth rate's "
+            f"north component {omega_n / DPH:.3f} °/h; pass the gyro means in deg/h and keep the base still"
+        )
+
+
 def solve_batch(
     table_angle_deg,
     gyro_dph,
@@ -195,19 +266,7 @@ def solve_batch(
 
     Same arguments as :func:`solve_heading`; leading batch dimension on the means only.
     """
-    if method not in METHODS:
-        raise InputError(f"method must be one of {list(METHODS)}, got {method!r}")
-    lat = float(latitude_deg)
-    if not np.isfinite(lat) or abs(lat) > MAX_ABS_LATITUDE_DEG:
-        raise InputError(
-            f"latitude_deg = {latitude_deg}: gyro north finding needs |latitude| ≤ {MAX_ABS_LATITUDE_DEG}° "
-            "(the horizontal Earth rate vanishes at the poles)"
-        )
-    alpha_deg = np.asarray(table_angle_deg, dtype=float)
-    if alpha_deg.ndim != 1 or alpha_deg.size < 3:
-        raise InputError(f"table_angle_deg: need at least 3 table positions, got shape {alpha_deg.shape}")
-    if not np.all(np.isfinite(alpha_deg)):
-        raise InputError("table_angle_deg: contains NaN or inf")
+    lat, alpha_deg = _checked_method_latitude_angles(method, latitude_deg, table_angle_deg)
     n = alpha_deg.size
     alpha = np.deg2rad(alpha_deg)
     gyro, gyro_k = _as_batch(gyro_dph, n, "gyro_dph")
@@ -238,45 +297,14 @@ def solve_batch(
     cov = np.zeros((trials, 4, 4))
     cov[:, :2, :2] = gyro_fit.covariance[:, :2, :2] * DPH**2
     cov[:, 2:4, 2:4] = accel_fit.covariance[:, :2, :2]
-    if accel3:
-        fz = accel[..., 2].mean(axis=-1)
-        mag = np.sqrt(fx**2 + fy**2 + fz**2)
-        bad = np.abs(mag / g_local_g - 1.0) > accel_tolerance
-        if np.any(bad):
-            m = float(mag[np.argmax(bad)])
-            raise InputError(
-                f"accel_g: |f| = {m:.4g} g is far from the local gravity {g_local_g:.5f} g ("
-                f"{accel_tolerance:.0%}); pass accelerometer means in g (not m/s²) and keep the base still"
-            )
-        if np.any(fz <= 0.0):
-            raise InputError("accel_g: the z axis reads negative gravity; mount the instrument z-up")
-    else:
-        mag = np.sqrt(fx**2 + fy**2)
-        if np.any(mag >= g_local_g):
-            m = float(mag.max())
-            raise InputError(
-                f"accel_g: the horizontal specific force is {m:.4g} g, not below the local gravity "
-                f"{g_local_g:.5f} g; pass the means in g and keep the base still"
-            )
+    fz = accel[..., 2].mean(axis=-1) if accel3 else None
+    mag = _checked_gravity(fx, fy, fz, g_local_g, accel_tolerance)
     up = _up_vector(fx, fy, g_local_g)
     pitch, roll = pitch_roll_from_up(up)
-    tilt = np.arccos(np.clip(up[..., 2], -1.0, 1.0))
-    if np.any(np.rad2deg(tilt) > tilt_limit_deg):
-        raise InputError(
-            f"accel_g: table tilt {np.rad2deg(tilt.max()):.2f}° exceeds the limit {tilt_limit_deg}°; "
-            "level the base (or raise tilt_limit_deg)"
-        )
-
-    omega_n = OMEGA_EARTH_RAD_S * np.cos(np.deg2rad(lat))
+    tilt = _checked_tilt_rad(up, tilt_limit_deg)
     omega_h = OMEGA_EARTH_RAD_S * np.sin(np.deg2rad(lat))
     wx, wy = gyro_fit.coef("v_x") * DPH, gyro_fit.coef("v_y") * DPH
-    horiz = np.hypot(wx - omega_h * up[..., 0], wy - omega_h * up[..., 1]) / omega_n
-    if np.any((horiz > 3.0) | (horiz < 0.05)):
-        r = float(horiz[np.argmax((horiz > 3.0) | (horiz < 0.05))])
-        raise InputError(
-            f"gyro_dph: the fitted horizontal rate is {r:.3g} × the Earth rate's north component "
-            f"{omega_n / DPH:.3f} °/h; pass the gyro means in deg/h and keep the base still"
-        )
+    _check_earth_rate(wx, wy, up, lat)
 
     headings = {name: np.rad2deg(fn(wx, wy, up, omega_h)) for name, fn in METHODS.items()}
     psi = np.deg2rad(headings[method])
@@ -292,7 +320,7 @@ def solve_batch(
         tilt_azimuth_deg=np.rad2deg(tilt_az),
         methods=headings,
         up_p=up,
-        accel_magnitude_g=mag if accel3 else np.full(trials, np.nan),
+        accel_magnitude_g=mag,
         gyro_fit=gyro_fit,
         accel_fit=accel_fit,
     )

@@ -389,13 +389,13 @@ def grid_moved(rd: RunDir) -> InputError:
     )
 
 
-def discard_unstarted_align(rd: RunDir, own_files: set[str]) -> bool:
+def discard_unstarted(rd: RunDir, own_files: set[str]) -> bool:
     """Remove a run directory this run created whose run never logged an event (bad port, the
     simulator did not start, Ctrl-C before the devices answered): config.json and empty or partial
-    raw logs (`own_files`) are nothing replay could use. A directory holding anything else, or
-    events, is kept (replay then says what it holds)."""
+    raw logs (`own_files`, the kind's own) are nothing replay or --resume could use. A directory
+    holding anything else, or events, is kept (replay and --resume then say what it holds)."""
     path = rd.path
-    if not rd.created or rd.session != 1 or rd.file(EVENTS).exists() or not path.is_dir():
+    if not getattr(rd, "created", False) or rd.session != 1 or rd.file(EVENTS).exists() or not path.is_dir():
         return False
     entries = list(path.iterdir())
     if any(e.name not in own_files or e.is_dir() for e in entries):
@@ -412,5 +412,5 @@ def removed_if_unstarted(rd: RunDir, own_files: set[str]) -> Iterator[RunDir]:
     try:
         yield rd
     except BaseException:
-        discard_unstarted_align(rd, own_files)
+        discard_unstarted(rd, own_files)
         raise

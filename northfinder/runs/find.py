@@ -35,6 +35,7 @@ from northfinder.estimators.means import PositionMeans, position_means
 from northfinder.history import record_or_warn
 from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session_file
 from northfinder.runs.base import ProgressView, RunContext, guard
+from northfinder.runs.base import discard_unstarted as base_discard_unstarted
 from northfinder.sequencer import Interrupted, RunFailed, Sequencer
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 from northfinder.stopflag import StopFlag
@@ -456,19 +457,9 @@ _OWN_FILES = {CONFIG, SIM_CONFIG, IMU_RAW, CAN_LOG, "turntable.log"}
 
 
 def discard_unstarted(rundir: RunDir) -> bool:
-    """Remove a run directory this run created whose devices never logged an event (bad port,
-    Ctrl-C while the simulator started): it holds nothing replay or --resume could use. A
-    directory with events but no start event is kept: replay and --resume say it never began."""
-    path = rundir.path
-    if not getattr(rundir, "created", False) or rundir.session != 1 or rundir.file(EVENTS).exists():
-        return False
-    entries = list(path.iterdir()) if path.is_dir() else []
-    if any(e.name not in _OWN_FILES or e.is_dir() for e in entries):
-        return False
-    for e in entries:
-        e.unlink()
-    path.rmdir()
-    return True
+    """A find's run directory with no event yet is removed (runs.base.discard_unstarted); one with
+    events but no start event is kept: replay and --resume say it never began."""
+    return base_discard_unstarted(rundir, _OWN_FILES)
 
 
 # -- result assembly (live and replay) ------------------------------------------------------
