@@ -285,12 +285,16 @@ def test_imu_port_that_disappears_and_comes_back_is_reconnected_and_the_position
 
 
 def test_imu_silent_for_good_stops_the_run_after_n_attempts_with_its_data_saved(tmp_path):
-    # silent from after position 3's dwell (it ends near 28.7 s device; position 4's starts after
-    # 32 s: a move, the settle and its 1 s margin, the 1 s dwell grid): every attempt times out
-    # (1 s host), the run stops
+    # silent for good from position 4's first dwell report on (set on the running simulator: a fixed
+    # device time would land wherever the host's pace put the dwells): every attempt times out (1 s
+    # host), the run stops with positions 1-3
+    def silent_for_good_from_position_4(sim, p) -> None:
+        if p.position == 4 and sim.imu.silence is None:
+            sim.imu.silence = (sim.clock.now(), 1e5)
+
     run_dir = tmp_path / "run"
     with pytest.raises(RunFailed) as info:
-        _in_process(run_dir, ["imu-silence=30.5:100000"], positions=5)
+        _in_process(run_dir, [], positions=5, during_dwell=silent_for_good_from_position_4)
     msg = str(info.value)
     assert "failed 3 times" in msg and "imu" in msg and str(run_dir) in msg and "--resume" in msg
     assert len(_positions(run_dir)) == 3
