@@ -250,16 +250,27 @@ def _silence_in_position_3(sim, p) -> None:
         sim.imu.silence = (sim.clock.now() + 0.2, 2.0)
 
 
+def _silence_in_position_3_and_unplug_in_position_6(sim, p) -> None:
+    """The silence above, then the IMU's port gone for 1 s (device) from 0.2 s after position 6's
+    dwell has 1 s — both set on the running simulator at a phase of the run, not at a fixed device
+    time that the host's pace could move into another position's dwell."""
+    _silence_in_position_3(sim, p)
+    pending = sim.imu.disconnect  # None once it has happened (one disconnect per run)
+    if p.position == 6 and p.dwell_done_s >= 1.0 and pending is not None and pending[0] > 1e5:
+        sim.imu.disconnect = (sim.clock.now() + 0.2, 1.0)
+
+
 @pytest.fixture(scope="module")
 def run_b(tmp_path_factory) -> tuple[Path, dict]:
     run_dir = tmp_path_factory.mktemp("faults") / "run_b"
-    # the link drops near position 6 (after ~39 s; any phase: the next read sees it)
     # A 2 s device silence lasts 2/TIME_SCALE s of host time here; a real unit's lasts 2 s, well over
     # the default link timeout (1 s). The link timeout is host time, so at TIME_SCALE× it is scaled
     # the same way (1 s device): otherwise the silence (2000 samples, seen as an 80-sample
     # sequence gap: the 7-bit counter aliases) could not be told from a held-back burst.
-    return run_dir, _in_process(run_dir, ["imu-disconnect=39:1"], positions=7,
-                                during_dwell=_silence_in_position_3, link_timeout_s=1.0 / TIME_SCALE)
+    # imu-disconnect far in the future sets up the port's symlink; the hook moves it into position 6
+    return run_dir, _in_process(run_dir, ["imu-disconnect=1000000:1"], positions=7,
+                                during_dwell=_silence_in_position_3_and_unplug_in_position_6,
+                                link_timeout_s=1.0 / TIME_SCALE)
 
 
 def test_imu_silent_mid_dwell_is_detected_and_the_dwell_measured_again(run_b):
