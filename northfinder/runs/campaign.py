@@ -13,13 +13,13 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Callable
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from northfinder.errors import InputError, NorthfinderError, RunAborted
 from northfinder.estimators.campaign_stats import deviation_deg, method_statistics, step_statistics
 from northfinder.history import record_or_warn
+from northfinder.runs.base import now_utc
 from northfinder.runs.find import FindRequest, run_find
 
 CAMPAIGN_JSON = "campaign.json"
@@ -40,10 +40,6 @@ def planned(plan: dict[str, Any]) -> list[tuple[int, int, int]]:
     """(index, step, repeat) of every find of the plan, in the order they are measured."""
     n = int(plan["repeat"])
     return [(s * n + r, s, r) for s in range(len(plan["steps"])) for r in range(n)]
-
-
-def now_utc() -> str:
-    return datetime.now(UTC).isoformat()
 
 
 def write_state(cdir: Path, state: dict[str, Any]) -> None:

@@ -34,7 +34,7 @@ from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG
 from northfinder.estimators.means import PositionMeans, position_means
 from northfinder.history import record_or_warn
 from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session_file
-from northfinder.runs.base import ProgressView, RunContext, guard
+from northfinder.runs.base import ProgressView, RunContext, guard, now_utc
 from northfinder.runs.base import discard_unstarted as base_discard_unstarted
 from northfinder.sequencer import Interrupted, RunFailed, Sequencer
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
@@ -251,7 +251,7 @@ def _start_event(ctx: RunContext, imu: Any, acc: Any, acc_info: dict[str, Any],
         "event": "start",
         "session": ctx.rundir.session,
         "simulate": sim_info,
-        "utc": datetime.now(UTC).isoformat(),
+        "utc": now_utc(),
         "latitude_deg": cfg.site.latitude_deg,
         "height_m": cfg.site.height_m,
         "method": cfg.estimator.method,

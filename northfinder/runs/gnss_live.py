@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import math
 import sys
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -282,6 +281,3 @@ def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool 
         lambda result, hist: gr.save_result(rd, result, hist, json_path, report),
     )
 
-
-def wall_clock() -> float:
-    return time.monotonic()
