@@ -60,7 +60,8 @@ class ImuSeries:
     """IMU samples in rate format: sample with index k integrates [t0 + k/rate, t0 + (k+1)/rate].
 
     `gyro_rad_s` [n,3] (Δθ·rate for a delta-format IMU), `accel_g` [n,3] in standard g. Missing
-    indices (lost samples) are filled by repeating the previous sample.
+    indices (lost samples: a line overrun, a dropped byte) are filled by linear interpolation
+    between the samples either side, and `gap_variance` says how uncertain each filled sample is.
     """
 
     rate_hz: float
@@ -75,17 +76,61 @@ class ImuSeries:
         return cls(rate_hz, np.asarray(dtheta_rad) * rate_hz,
                    np.asarray(dv_m_s) * rate_hz / STANDARD_GRAVITY_M_S2, None, t0_s)
 
-    def increments(self) -> tuple[np.ndarray, np.ndarray]:
-        """Dense (Δθ, Δv) from index 0 to the last index, gaps filled by the previous sample."""
-        dth, dv = increments_from_rates(self.gyro_rad_s, self.accel_g, self.rate_hz)
+    def _relative_index(self) -> np.ndarray | None:
+        """Sample indices from 0 (None: no index, every sample present)."""
         if self.sample_index is None:
-            return dth, dv
+            return None
         idx = np.asarray(self.sample_index, dtype=np.int64)
         if np.any(np.diff(idx) <= 0):
             raise InputError("IMU sample_index must increase strictly (unwrap the sequence counter first)")
-        idx = idx - idx[0]
-        pos = np.searchsorted(idx, np.arange(idx[-1] + 1), side="right") - 1
-        return dth[pos], dv[pos]
+        return idx - idx[0]
+
+    def increments(self) -> tuple[np.ndarray, np.ndarray]:
+        """Dense (Δθ, Δv) from index 0 to the last index, gaps filled by linear interpolation."""
+        dth, dv = increments_from_rates(self.gyro_rad_s, self.accel_g, self.rate_hz)
+        idx = self._relative_index()
+        if idx is None:
+            return dth, dv
+        dense = np.arange(idx[-1] + 1)
+        return (np.column_stack([np.interp(dense, idx, dth[:, i]) for i in range(3)]),
+                np.column_stack([np.interp(dense, idx, dv[:, i]) for i in range(3)]))
+
+    def gap_variance(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Variance [rad², (m/s)²] per dense sample and axis that the gap filling leaves in Δθ, Δv
+        (None: no sample lost).
+
+        Model: inside a gap the rate (specific force) is a Brownian bridge between the samples either
+        side, so the error of the interpolated integral over a gap of span T has variance q·T³/12.
+        q·T is taken as the larger of the rate's change across this gap and the mean squared change
+        over the same lag in the received data (the structure function D(T)): the first covers a
+        turn under way, the second one that started and ended unseen. The variance is spread evenly
+        over the gap's filled samples, so any chunk holding the whole gap carries all of it.
+        """
+        idx = self._relative_index()
+        if idx is None or len(idx) == idx[-1] + 1:
+            return None
+        gaps = np.nonzero(np.diff(idx) > 1)[0]
+        n_dense = int(idx[-1]) + 1
+        present = np.zeros(n_dense, dtype=bool)
+        present[idx] = True
+        var_th, var_v = np.zeros((n_dense, 3)), np.zeros((n_dense, 3))
+        dt = 1.0 / float(self.rate_hz)
+        structure: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for series, var in ((self.gyro_rad_s, var_th), (self.accel_g * STANDARD_GRAVITY_M_S2, var_v)):
+            dense = np.full((n_dense, 3), np.nan)
+            dense[idx] = series
+            structure.clear()
+            for g in gaps:
+                a, b = int(idx[g]), int(idx[g + 1])
+                lag = b - a
+                if lag not in structure:
+                    both = present[lag:] & present[:-lag]
+                    d = (dense[lag:] - dense[:-lag])[both]
+                    structure[lag] = np.mean(d**2, axis=0) if len(d) else np.zeros(3)
+                change2 = np.maximum(structure[lag], (dense[b] - dense[a]) ** 2)
+                span_s = lag * dt
+                var[a + 1:b] = change2 * span_s**2 / 12.0 / (lag - 1)
+        return var_th, var_v
 
 
 @dataclass
@@ -239,8 +284,11 @@ class _ErrorStateFilter:
         return np.eye(self.n_att)
 
     # -- time update -----------------------------------------------------------------------------
-    def predict(self, s: ChunkSummary) -> None:
+    def predict(self, s: ChunkSummary, gap_var: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """Covariance propagation over one IMU chunk: Φ = exp(F·Δt) (3rd-order series), Q = G Qc Gᵀ Δt.
+
+        `gap_var`: the variance [rad², (m/s)²] per body axis of the chunk's Δθ and Δv that lost
+        samples left (ImuSeries.gap_variance), added as gyro and accelerometer noise of the chunk.
 
         Velocity error equation: paper eq 14 with δC from eq 7, in our frames
         δV̇ = δC f^b + Ĉ δf − (2ω_ie + ω_en) × δV + δg (docs/gnss-alignment.md §3).
@@ -274,6 +322,8 @@ class _ErrorStateFilter:
         fdt = F * dt
         phi = np.eye(n) + fdt @ (np.eye(n) + fdt @ (np.eye(n) + fdt / 3.0) / 2.0)
         q = (G * qc) @ G.T * dt
+        if gap_var is not None:
+            q += (G[:, 0:3] * gap_var[0]) @ G[:, 0:3].T + (G[:, 3:6] * gap_var[1]) @ G[:, 3:6].T
         self.P = phi @ self.P @ phi.T + 0.5 * (phi @ q @ phi.T + q)
         self.x = phi @ self.x
         if not self.estimate_lever:
@@ -507,6 +557,7 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
     """Level on the still start, then run the filter over every GNSS fix; return the histories."""
     cfg = config or GnssAlignConfig()
     dth, dv = imu.increments()
+    gaps = imu.gap_variance()
     rate = float(imu.rate_hz)
     n_imu = dth.shape[0]
     t_fix = np.asarray(gnss.t_s, dtype=float)
@@ -545,8 +596,11 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
         if k_to <= k_cur:
             continue
         summary = ins.propagate(dth[k_cur:k_to], dv[k_cur:k_to])
+        gap_var = None
+        if gaps is not None:
+            gap_var = (gaps[0][k_cur:k_to].sum(axis=0), gaps[1][k_cur:k_to].sum(axis=0))
         k_cur = k_to
-        flt.predict(summary)
+        flt.predict(summary, gap_var)
         z = flt.update(gnss.pos_enu_m[j], gnss.vel_enu_m_s[j], gnss.pos_std_m[j], gnss.vel_std_m_s[j],
                        t_fix[j] - ins.state.t_s)
         rows.append(_snapshot(flt, z))
