@@ -22,6 +22,8 @@ from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG
 
 METHODS = ("exact", "vector", "coordinate_transform", "uncompensated", "eq11")
 ORDERS = ("sequential", "alternating")
+RUN_PLANS = ("positions", "positions+motion")
+"""Kinds of turntable run `find` carries out (northfinder.estimators.plan.KINDS also models a sweep)."""
 IMU_RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
 ROT_FORMATS = ("DELTA", "RATE")
 ROT_UNITS = ("RAD", "DEG")
@@ -140,6 +142,10 @@ class RunConfig:
     positions: int = 8
     dwell_s: float = 30.0
     order: str = "sequential"
+    plan: str = "positions+motion"
+    """"positions": the dwell means only; "positions+motion": every gyro sample from the first dwell
+    to the last, each at its own table angle (needs a z gyro; otherwise the dwells, and the result
+    says why) — docs/estimators.md §10."""
     start_deg: float = 0.0
     settle_window_s: float = 0.2
     """Length of one settle window of gyro-z samples [device s]."""
@@ -359,6 +365,7 @@ def _validate_site_run(cfg: BenchConfig, need: Callable[[bool, str, Any, str], N
         math.isfinite(r.dwell_s) and r.dwell_s > 0, "[run] dwell_s", r.dwell_s, "use a dwell greater than 0 s"
     )
     need(r.order in ORDERS, "[run] order", r.order, f"use one of {', '.join(ORDERS)}")
+    need(r.plan in RUN_PLANS, "[run] plan", r.plan, f"use one of {', '.join(RUN_PLANS)}")
     need(
         math.isfinite(r.start_deg) and -360.0 <= r.start_deg <= 360.0,
         "[run] start_deg",

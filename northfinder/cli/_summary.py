@@ -47,9 +47,10 @@ def _head_table(result: dict[str, Any]) -> Any:
         f"(pitch {t['pitch_deg']:+.4f}°, roll {t['roll_deg']:+.4f}°)",
     )
     head.add_row("latitude", f"{result['latitude_deg']:.4f}°")
-    head.add_row(
-        "device time", f"{result['duration_device_s']:.1f} s over {result['positions_measured']} positions"
-    )
+    n_pos = result["positions_measured"]
+    head.add_row("device time", f"{result['duration_device_s']:.1f} s of dwell over {n_pos} positions")
+    for label, text in _plan_rows(result):
+        head.add_row(label, text)
     if "truth" in result:
         tr = result["truth"]
         head.add_row(
@@ -66,6 +67,30 @@ def _head_table(result: dict[str, Any]) -> Any:
             f"{result['positions_measured']} of {result['positions_planned']} positions measured",
         )
     return head
+
+
+def _plan_rows(result: dict[str, Any]) -> list[tuple[str, str]]:
+    """What the heading used (the dwells, or every sample) and what the plan predicted."""
+    rows = []
+    motion, dwell = result.get("motion_fit"), result.get("dwell_fit")
+    if motion is not None and motion.get("available"):
+        n = motion["samples"]
+        rows.append(("plan", f"positions+motion: every gyro sample, {n['used_device_s']:.1f} s of the "
+                     f"{n['stream_device_s']:.1f} s IMU stream "
+                     f"(dwells alone ± {dwell['heading_std_deg']:.4f}°)"))
+    elif motion is not None:
+        rows.append(("plan", "positions (dwells only): the motion samples could not be used — "
+                     f"{motion['reason']}"))
+    else:
+        rows.append(("plan", f"{result.get('plan', 'positions')}: the dwell means"))
+    pred = result.get("plan_prediction")
+    if pred:
+        goal = (f"target {pred['target_std_deg']:g}°" if pred.get("target_std_deg") is not None
+                else f"budget {pred['time_budget_s']:g} s")
+        rows.append(("predicted", f"± {pred['predicted_std_deg']:.4f}° in "
+                     f"{pred['predicted_elapsed_s']:.0f} s ({goal}, {pred['grade']}, "
+                     f"{pred['positions']} × {pred['dwell_s']:g} s)"))
+    return rows
 
 
 def _methods_table(result: dict[str, Any]) -> Any:

@@ -50,6 +50,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--order", choices=bench.ORDERS, help="position order")
     p.add_argument("--method", choices=bench.METHODS, help="heading method reported as the result")
+    p.add_argument(
+        "--plan",
+        choices=bench.RUN_PLANS,
+        help="positions: the dwell means only; positions+motion (default [run] plan): every gyro sample, "
+        "also those taken while the table turns and settles (needs a z gyro)",
+    )
+    goal = p.add_mutually_exclusive_group()
+    goal.add_argument("--target-std", type=float, metavar="DEG",
+                      help="choose the plan (n, dwell, kind) that reaches this heading 1σ soonest "
+                      "(northfinder plan's model; needs --grade)")  # fmt: skip
+    goal.add_argument("--time-budget", type=float, metavar="S",
+                      help="choose the plan with the smallest σ in this much device time (needs --grade)")
     p.add_argument("--json", metavar="PATH", help="also write the result JSON here")
     p.add_argument("--out", metavar="RUN_DIR", help="run directory (default: runs/find-<UTC time>)")
     p.add_argument("--no-report", action="store_true", help="skip report.png")
@@ -66,7 +78,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="DEG",
         help=f"site latitude (default {d.latitude_deg} simulated; overrides [site] with --config)",
     )
-    sim.add_argument("--grade", default=d.grade, help="sensor grade: nav, kvh1760, tactical-mems, consumer")
+    sim.add_argument("--grade", default=None,
+                     help=f"sensor grade: nav, kvh1760, tactical-mems, consumer (simulated: default "
+                     f"{d.grade}; with --config: the grade --target-std/--time-budget plan for)")
     sim.add_argument(
         "--seed",
         type=int,

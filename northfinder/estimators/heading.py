@@ -389,3 +389,25 @@ def solve_heading(
 def solve_all_methods(table_angle_deg, gyro_dph, accel_g, latitude_deg: float, **kwargs) -> dict[str, float]:
     """Every method's heading [deg] for one find (the CLI prints all five)."""
     return solve_heading(table_angle_deg, gyro_dph, accel_g, latitude_deg, **kwargs).methods
+
+
+def heading_with_gyro_fit(
+    sol: HeadingSolution, gyro_fit: HarmonicFit, *, height_m: float = 0.0
+) -> tuple[float, float, dict[str, float]]:
+    """Heading [deg], 1σ [deg] and every method's heading from another fit of the horizontal Earth
+    rate (v_x, v_y in deg/h with its covariance, e.g. the per-sample motion fit) and the tilt of
+    `sol` (its accelerometer fit): the same methods and the same 4×4 propagation as solve_batch,
+    with the gyro block taken from `gyro_fit`."""
+    lat_deg = float(sol.latitude_deg)
+    g_local_g = float(normal_gravity_m_s2(lat_deg, height_m)) / STANDARD_GRAVITY_M_S2
+    acc = sol.accel_fit
+    fx, fy = acc.coef("v_x"), acc.coef("v_y")
+    wx, wy = gyro_fit.coef("v_x") * DPH, gyro_fit.coef("v_y") * DPH
+    cov = np.zeros((wx.shape[0], 4, 4))
+    cov[:, :2, :2] = gyro_fit.covariance[:, :2, :2] * DPH**2
+    cov[:, 2:4, 2:4] = acc.covariance[:, :2, :2]
+    up = _up_vector(fx, fy, g_local_g)
+    omega_h = OMEGA_EARTH_RAD_S * np.sin(np.deg2rad(lat_deg))
+    headings = {name: float(np.rad2deg(fn(wx, wy, up, omega_h))[0]) for name, fn in METHODS.items()}
+    std = _heading_std_rad(sol.method, np.stack([wx, wy, fx, fy], axis=-1), cov, g_local_g, omega_h)
+    return headings[sol.method], float(np.rad2deg(std)[0]), headings

@@ -182,3 +182,61 @@ def heading_from_rates(v_x_dph, v_y_dph, up_p, latitude_deg: float, cov_dph2=Non
     g = np.stack(grads, axis=-1)
     var = np.einsum("...i,...ij,...j->...", g, np.asarray(cov_dph2)[..., :2, :2], g)
     return np.rad2deg(psi), np.rad2deg(np.sqrt(var))
+
+
+def place_samples(
+    sample_index, gyro_dph, dwells, rate_hz: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, int]]:
+    """Every gyro sample from the first dwell's start to the last dwell's end with its table angle
+    and rate (eq M1 per pair of dwells), for the per-sample fit.
+
+    `sample_index` (m,) strictly increasing device indices, `gyro_dph` (m, 3) with a z gyro;
+    `dwells`: (first_index, last_index, encoder_deg) of each dwell at rest, in time order. The
+    samples between two dwells are placed by the z gyro pinned to the two encoder readings; a
+    stretch with a lost or invalid (NaN) sample cannot be integrated and is left out (its two
+    dwells still count). Returns alpha_deg, omega_dps, gyro_dph of the kept samples and counts
+    {"rest", "motion", "stretches_dropped"}.
+    """
+    idx = np.asarray(sample_index, dtype=np.int64)
+    g = np.asarray(gyro_dph, dtype=float)
+    if g.ndim != 2 or g.shape != (idx.size, 3):
+        raise InputError(f"place_samples: gyro {g.shape} must be ({idx.size}, 3)")
+    spans = sorted((int(a), int(b), float(e)) for a, b, e in dwells)
+    if len(spans) < 2:
+        raise InputError("motion samples need at least two dwells")
+    alphas, omegas, gyros = [], [], []
+    counts = {"rest": 0, "motion": 0, "stretches_dropped": 0}
+
+    finite = np.all(np.isfinite(g), axis=1)
+
+    def take(lo: int, hi: int, valid_only: bool = True) -> np.ndarray:
+        sel = (idx >= lo) & (idx <= hi)
+        return np.flatnonzero(sel & finite if valid_only else sel)
+
+    for k, (a0, b0, e0) in enumerate(spans):
+        rest = take(a0, b0)
+        alphas.append(np.full(rest.size, e0))
+        omegas.append(np.zeros(rest.size))
+        gyros.append(g[rest])
+        counts["rest"] += rest.size
+        if k + 1 == len(spans):
+            break
+        a1, b1, e1 = spans[k + 1]
+        between = take(b0 + 1, a1 - 1, valid_only=False)
+        if between.size == 0:
+            continue
+        complete = between.size == a1 - b0 - 1 and bool(np.all(finite[between]))
+        rest_next = take(a1, b1)
+        if not complete or rest.size == 0 or rest_next.size == 0:
+            counts["stretches_dropped"] += 1
+            continue
+        sel = np.concatenate([rest, between, rest_next])
+        enc = np.full(sel.size, np.nan)
+        enc[: rest.size], enc[rest.size + between.size :] = e0, e1
+        alpha, omega = table_angle_from_z(g[sel, 2], 1.0 / rate_hz, enc)
+        alphas.append(alpha[rest.size : rest.size + between.size])
+        omegas.append(omega[rest.size : rest.size + between.size])
+        gyros.append(g[between])
+        counts["motion"] += between.size
+    cat = np.concatenate
+    return cat(alphas), cat(omegas), cat(gyros), counts

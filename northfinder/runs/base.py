@@ -42,6 +42,8 @@ class RunContext:
     report: bool = True
     progress: ProgressView | None = None
     on_event: Callable[[dict[str, Any]], None] | None = None
+    start_extra: dict[str, Any] | None = None
+    """Extra fields of the start event (e.g. find's plan prediction)."""
 
     def start(self, config: dict[str, Any]) -> None:
         """Write config.json (the first session only: a resumed run keeps its saved config)."""

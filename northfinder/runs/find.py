@@ -17,7 +17,7 @@ import math
 import signal
 import sys
 import tomllib
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -30,7 +30,7 @@ from northfinder.codecs.canopen import decode_accel_frames
 from northfinder.codecs.kvh import decode_imu_stream
 from northfinder.constants import wrap_deg_180
 from northfinder.errors import InputError, RunAborted, RunDamaged
-from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG
+from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG, HeadingSolution
 from northfinder.estimators.means import PositionMeans, position_means
 from northfinder.history import record_or_warn
 from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session_file
@@ -73,11 +73,15 @@ class FindRequest:
     pitch: float = SimSettings.pitch_deg
     roll: float = SimSettings.roll_deg
     latitude: float | None = None
-    grade: str = SimSettings.grade
+    grade: str | None = None
+    """The gyro's grade: the simulator's (default SimSettings.grade) and the planner's noise."""
     seed: int = SimSettings.seed
     time_scale: float = DEFAULT_TIME_SCALE
     fault: Sequence[str] = ()
     sim_config: str | None = None
+    plan: str | None = None
+    target_std: float | None = None
+    time_budget: float | None = None
 
 
 def check_request(req: FindRequest) -> None:
@@ -95,6 +99,15 @@ def check_request(req: FindRequest) -> None:
         raise InputError(msg)
     if req.simulate and not (math.isfinite(req.time_scale) and req.time_scale > 0):
         raise InputError(f"--time-scale {req.time_scale:g}: use a factor greater than 0")
+    for flag, value in (("--target-std", req.target_std), ("--time-budget", req.time_budget)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise InputError(f"{flag} {value:g}: use a value greater than 0")
+    if req.target_std is not None or req.time_budget is not None:
+        if req.target_std is not None and req.time_budget is not None:
+            raise InputError("--target-std and --time-budget: give one of them, not both")
+        if req.positions is not None or req.dwell is not None or req.plan is not None:
+            raise InputError("--target-std/--time-budget choose --positions, --dwell and --plan; "
+                             "give either the goal or the plan")  # fmt: skip
 
 
 def _apply_overrides(cfg: bench.BenchConfig, req: FindRequest,
@@ -109,6 +122,8 @@ def _apply_overrides(cfg: bench.BenchConfig, req: FindRequest,
         cfg.run.order = req.order
     if req.method is not None:
         cfg.estimator.method = req.method
+    if req.plan is not None:
+        cfg.run.plan = req.plan
     if latitude_deg is not None:
         cfg.site.latitude_deg = latitude_deg
     return cfg.validate()
@@ -118,9 +133,10 @@ def default_out() -> Path:
     return Path("runs") / datetime.now(UTC).strftime("find-%Y%m%dT%H%M%SZ")
 
 
-def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSettings | None]:
-    """The bench, the run directory and the simulator's settings of a new find. The directory is
-    made only once the configuration is known to be good: a bad config leaves nothing behind."""
+def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSettings | None, dict | None]:
+    """The bench, the run directory, the simulator's settings and the plan's prediction (with
+    --target-std/--time-budget) of a new find. The directory is made only once the configuration is
+    known to be good: a bad config leaves nothing behind."""
     if req.simulate:
         sim_text, accel_rate_hz = sim_config_text(req.sim_config)
         cfg = bench.BenchConfig(source="--simulate")
@@ -131,6 +147,12 @@ def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSetting
     else:
         cfg = _apply_overrides(bench.load(req.config), req, req.latitude)
         bench.require_ports(cfg)
+    prediction = None
+    if req.target_std is not None or req.time_budget is not None:
+        from northfinder.runs.find_plan import choose_for_run
+
+        grade = req.grade or (SimSettings.grade if req.simulate else None)
+        prediction = choose_for_run(cfg, grade, req.target_std, req.time_budget)
     rundir = RunDir(req.out or default_out())
     settings = None
     if req.simulate:
@@ -139,13 +161,13 @@ def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSetting
             pitch_deg=req.pitch,
             roll_deg=req.roll,
             latitude_deg=cfg.site.latitude_deg,
-            grade=req.grade,
+            grade=req.grade or SimSettings.grade,
             seed=req.seed,
             time_scale=req.time_scale,
             faults=tuple(req.fault),
             config=str(write_sim_config(rundir, sim_text)),
         )
-    return cfg, rundir, settings
+    return cfg, rundir, settings, prediction
 
 
 def run_find(req: FindRequest, progress: ProgressView | None = None) -> tuple[dict[str, Any], RunDir, str]:
@@ -153,16 +175,17 @@ def run_find(req: FindRequest, progress: ProgressView | None = None) -> tuple[di
     what the wall time covered ("measurement and report", "resumed session k")."""
     check_request(req)
     kwargs: dict[str, Any] = {}
+    prediction = None
     if req.resume:
         r = prepare_resume(req.resume, req.time_scale, req.fault)
         cfg, rundir, settings = r.cfg, r.rundir, r.settings
         kwargs = {"previous": r.previous, "skip": r.skip}
         label = f"resumed session {rundir.session}"
     else:
-        cfg, rundir, settings = prepare_new(req)
+        cfg, rundir, settings, prediction = prepare_new(req)
         label = "measurement and report"
     result = measure_and_report(cfg, rundir, settings, json_path=req.json, report=not req.no_report,
-                                unit=req.unit, progress=progress, **kwargs)
+                                unit=req.unit, progress=progress, prediction=prediction, **kwargs)
     return result, rundir, label
 
 
@@ -257,6 +280,7 @@ def _start_event(ctx: RunContext, imu: Any, acc: Any, acc_info: dict[str, Any],
         "method": cfg.estimator.method,
         "positions_planned": cfg.run.positions,
         "dwell_s": cfg.run.dwell_s,
+        "plan": cfg.run.plan,
         "imu": {"port": cfg.imu.port, "rate_hz": imu.rate_hz, "rot_format": imu.rot_format,
                 "rot_units": imu.rot_units},
         "accelerometer": {
@@ -268,6 +292,7 @@ def _start_event(ctx: RunContext, imu: Any, acc: Any, acc_info: dict[str, Any],
             "layout": acc.layout.to_dict(),
         },
         "truth": ctx.truth,
+        **(ctx.start_extra or {}),
     }
 
 
@@ -311,6 +336,7 @@ def measure(
     previous: list[PositionMeans] | None = None,
     skip: set[int] | None = None,
     seq_kwargs: dict[str, Any] | None = None,
+    prediction: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """One north find on the bench `cfg` describes: open the devices, run the sequence, save the
     run directory, return the result. A signal stops it: RunAborted (exit 130, 143 for SIGTERM)
@@ -319,9 +345,10 @@ def measure(
     for none. `previous`/`skip`: a resumed run's positions already measured (and their plan
     indices); `rundir.session` > 1 then. `seq_kwargs` go to the Sequencer (an `on_progress` there
     is called after the progress view)."""
-    ctx = RunContext(cfg, rundir, settings.truth() if settings else None, json_path, report, progress)
+    ctx = RunContext(cfg, rundir, settings.truth() if settings else None, json_path, report, progress,
+                     start_extra={"plan_prediction": prediction} if prediction else None)
     sim_info = _sim_info(settings)
-    ctx.start({"bench": cfg.to_dict(), "simulate": sim_info, "argv": sys.argv})
+    ctx.start({"bench": cfg.to_dict(), "simulate": sim_info, "argv": sys.argv, "plan_prediction": prediction})
     stop = StopFlag()
     with stop.installed(), open_bench(cfg, rundir, can_kwargs) as (tt, imu, acc):
         acc_info = _configure(cfg, imu, acc, rundir)
@@ -334,9 +361,19 @@ def measure(
 
 def _result(ctx: RunContext, positions: Sequence[PositionMeans], complete: bool) -> dict[str, Any]:
     cfg = ctx.cfg
+    events = ctx.rundir.events()
     return compute_result(positions, cfg.site.latitude_deg, cfg.estimator.method, height_m=cfg.site.height_m,
                           truth=ctx.truth, complete=complete, positions_planned=cfg.run.positions,
-                          faults=faults_summary(ctx.rundir.events()))
+                          faults=faults_summary(events), plan=cfg.run.plan,
+                          motion=_motion(ctx.rundir, events, cfg.site.height_m),
+                          prediction=(ctx.start_extra or {}).get("plan_prediction"))
+
+
+def _motion(rd: RunDir, events: Sequence[dict[str, Any]], height_m: float):
+    """The per-sample fit on this run's raw log, for compute_result (same call live and in replay)."""
+    from northfinder.runs.find_motion import motion_fit_result
+
+    return lambda sol: motion_fit_result(rd, events, sol, height_m)
 
 
 def save_partial(ctx: RunContext, positions: list[PositionMeans]) -> None:
@@ -512,22 +549,36 @@ def compute_result(
     complete: bool = True,
     positions_planned: int | None = None,
     faults: dict[str, Any] | None = None,
+    plan: str = "positions",
+    motion: Callable[[HeadingSolution], dict[str, Any]] | None = None,
+    prediction: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The result dict (docs/result-schema.md) from per-position means: every method's heading,
     the tilt, the per-position data, the error against the truth for a simulated run, and what
-    went wrong on the way (`faults`, from :func:`faults_summary` of the events log)."""
+    went wrong on the way (`faults`, from :func:`faults_summary` of the events log).
+
+    plan "positions+motion" with `motion` (the dwells' solution → find_motion.motion_fit_result):
+    the heading and its 1σ come from the per-sample fit when it is available; the dwells' own
+    heading stays in `dwell_fit` (and is the result, with the reason, when it is not)."""
     if len(positions) < 3:
         raise InputError(f"only {len(positions)} positions measured; a heading needs at least 3")
     sol = _solve(positions, latitude_deg, method, height_m)
+    heading_deg, heading_std_deg, headings = sol.heading_deg, sol.heading_std_deg, sol.methods
+    motion_info = motion(sol) if (plan == "positions+motion" and motion is not None) else None
+    if motion_info is not None and motion_info["available"]:
+        heading_deg, heading_std_deg = motion_info["heading_deg"], motion_info["heading_std_deg"]
+        headings = motion_info["methods"]
     result: dict[str, Any] = {
         "schema": "northfinder.result/1",
         "complete": bool(complete),
         "positions_planned": int(positions_planned if positions_planned is not None else len(positions)),
         "positions_measured": len(positions),
         "method": method,
-        "heading_deg": float(sol.heading_deg),
-        "heading_std_deg": float(sol.heading_std_deg),
-        "methods": {name: {"heading_deg": float(h)} for name, h in sol.methods.items()},
+        "plan": plan,
+        "heading_deg": float(heading_deg),
+        "heading_std_deg": float(heading_std_deg),
+        "methods": {name: {"heading_deg": float(h)} for name, h in headings.items()},
+        "dwell_fit": {"heading_deg": float(sol.heading_deg), "heading_std_deg": float(sol.heading_std_deg)},
         "tilt": {
             "pitch_deg": float(sol.pitch_deg),
             "roll_deg": float(sol.roll_deg),
@@ -545,6 +596,10 @@ def compute_result(
         },
         "positions": [asdict(p) for p in positions],
     }
+    if motion_info is not None:
+        result["motion_fit"] = motion_info
+    if prediction is not None:
+        result["plan_prediction"] = prediction
     if faults is not None:
         result["faults"] = faults
     if truth is not None:
@@ -729,5 +784,8 @@ def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
             complete=complete,
             positions_planned=planned,
             faults=faults_summary(events),
+            plan=start.get("plan", "positions"),
+            motion=_motion(rd, events, start.get("height_m", 0.0)),
+            prediction=start.get("plan_prediction"),
         )
     return ReplayOutcome(result, complete, len(positions), planned, positions)

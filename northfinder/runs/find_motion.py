@@ -1,0 +1,83 @@
+"""The stop-and-go find's motion samples: the per-sample fit over the whole run, from imu.raw.
+
+While the table turns and settles between two dwells the horizontal gyros still see the Earth
+rate at the table's current angle; with a z gyro each of those samples is placed at its own angle
+(estimators.motion_fit.place_samples, docs/estimators.md §10, eq M1) and the harmonic fit takes
+every sample with the table-rate term δ·ω per axis (eq M2, `MOTION_TERMS`). The tilt still comes
+from the dwells' accelerometer fit. Live and replay call the same function on the raw log, so a
+replayed result equals the live one bit for bit.
+
+Why from the log and not from the drivers' arrays: the sequencer reads the samples between dwells
+in pieces (settle windows, margins, what it drops before a move), and the raw log is the one
+place that holds them all in order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from northfinder.codecs.kvh import decode_imu_stream
+from northfinder.constants import DPH
+from northfinder.errors import InputError
+from northfinder.estimators.heading import HeadingSolution, heading_with_gyro_fit
+from northfinder.estimators.motion_fit import fit_motion, place_samples
+from northfinder.rundir import IMU_RAW, RunDir
+
+MOTION_TERMS = ("misalignment",)
+
+
+def motion_samples(rd: RunDir, events: Sequence[dict[str, Any]]) -> tuple[Any, str | None]:
+    """(alpha_deg, omega_dps, gyro_dph, counts) of a one-session run, or (None, why not)."""
+    starts = [e for e in events if e.get("event") == "start"]
+    if len(starts) != 1:
+        return None, "a resumed run: its sessions' sample counters do not join"
+    positions = [e for e in events if e.get("event") == "position"]
+    if len(positions) < 3:
+        return None, "fewer than 3 positions"
+    imu_cfg = starts[0]["imu"]
+    raw_path = rd.file(IMU_RAW)
+    if not raw_path.exists():
+        return None, f"no {IMU_RAW}"
+    block, _ = decode_imu_stream(raw_path.read_bytes(), imu_cfg["rate_hz"], imu_cfg["rot_format"],
+                                 imu_cfg["rot_units"])
+    gyro = np.asarray(block.gyro_rad_s, dtype=float) / DPH
+    if gyro.size == 0 or not np.any(np.isfinite(gyro[:, 2])):
+        return None, "no gyro z: the table angle between dwells is unknown"
+    dwells = [(e["imu"]["first_index"], e["imu"]["last_index"], e["table_angle_deg"]) for e in positions]
+    rate_hz = float(imu_cfg["rate_hz"])
+    alpha, omega, placed, counts = place_samples(block.sample_index, gyro, dwells, rate_hz)
+    idx = block.sample_index
+    counts["stream_device_s"] = float(idx[-1] - idx[0] + 1) / rate_hz
+    counts["fit_span_device_s"] = float(max(d[1] for d in dwells) - min(d[0] for d in dwells) + 1) / rate_hz
+    counts["used_device_s"] = (counts["rest"] + counts["motion"]) / rate_hz
+    return (alpha, omega, placed, counts), None
+
+
+def motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol: HeadingSolution,
+                      height_m: float = 0.0) -> dict[str, Any]:
+    """The per-sample fit's heading, 1σ and what it used (`available` False with the reason when
+    the run cannot give one)."""
+    placed, why = motion_samples(rd, events)
+    if placed is None:
+        return {"available": False, "reason": why}
+    alpha, omega, gyro, counts = placed
+    axes = ("x", "y") if np.all(np.isfinite(gyro[:, 0])) else ("y",)
+    cols = [0, 1] if axes == ("x", "y") else [1]
+    try:
+        fit = fit_motion(alpha, omega, gyro[:, cols], axes, terms=MOTION_TERMS)
+    except InputError as exc:
+        return {"available": False, "reason": str(exc)}
+    heading, std, methods = heading_with_gyro_fit(sol, fit, height_m=height_m)
+    return {
+        "available": True,
+        "heading_deg": heading,
+        "heading_std_deg": std,
+        "methods": methods,
+        "terms": list(MOTION_TERMS),
+        "misalignment_dph_per_dps": {ax: float(fit.coef(f"d_{ax}")[0]) for ax in axes},
+        "samples": counts,
+        "residual_rms_dph": {k: float(v[0]) for k, v in fit.residual_rms.items()},
+    }
