@@ -116,3 +116,57 @@ def test_motion_terms_without_motion_are_one_clear_error():
         table_angle_from_z(np.zeros(5), 0.01, np.array([np.nan, 0, 0, 0, 0]))
     with pytest.raises(InputError, match="motion terms"):
         motion_design(alpha, np.zeros_like(alpha), ("x", "y"), ("wobble",))
+
+
+def _stream_with_dwells(rate_hz: float = 100.0):
+    """A sample-indexed stream of the one-way plan: indices from 1000, the dwells (the rest samples
+    that are not the settle part) as (first, last, encoder)."""
+    sch = P.schedule(_one_way_plan(), ONE_WAY, 1.0 / rate_hz)
+    quiet = replace(P.GRADES["nav"], arw_deg_rt_h=1e-9, bias_instability_dph=0.0, rrw_dph_rt_h=0.0)
+    err = TOOL.MotionErrors(sf_z_ppm=300.0, sf_z_asym_ppm=100.0, bias_dph=(0.0, 0.0, 0.3))
+    gyro, _ = TOOL.simulate_samples(np.random.default_rng(2), 1, sch, quiet, err, HEADING, LAT, TILT, 90.0)
+    idx = np.arange(sch.alpha_deg.size) + 1000
+    # a dwell = the last `dwell_s` of every rest stretch (the settle/restart before it counts as motion)
+    n_dwell = int(round(_one_way_plan().dwell_s * rate_hz))
+    stops = np.flatnonzero(np.diff(np.r_[sch.rest.astype(int), 0]) == -1)
+    dwells = [(int(idx[b - n_dwell + 1]), int(idx[b]), float(sch.alpha_deg[b])) for b in stops]
+    return sch, idx, gyro[0], dwells
+
+
+def test_place_samples_puts_every_sample_between_dwells_at_its_angle():
+    """The run's layout (dwells with encoder readings, the stream between them) gives every sample
+    its table angle: on the true angle within the half-sample step, with the true rate."""
+    from northfinder.estimators.motion_fit import place_samples
+
+    sch, idx, gyro, dwells = _stream_with_dwells()
+    alpha, omega, g, counts = place_samples(idx, gyro, dwells, 100.0)
+    first, last = dwells[0][0] - 1000, dwells[-1][1] - 1000
+    truth_alpha = sch.alpha_deg[first : last + 1]
+    assert counts["rest"] + counts["motion"] == last - first + 1 and counts["stretches_dropped"] == 0
+    assert alpha.size == truth_alpha.size
+    # the samples come back in stream order (dwell, stretch, dwell, …): sample for sample, within
+    # the bounds of test_z_gyro_angle_is_pinned_to_the_encoder… (same grid, same errors)
+    assert np.max(np.abs(alpha - truth_alpha)) < 2e-3
+    assert np.max(np.abs(omega - sch.omega_dps[first : last + 1])) < 1e-3
+
+
+def test_place_samples_leaves_out_a_stretch_with_a_lost_or_invalid_sample():
+    """A lost sample (index gap) or a NaN in a stretch between two dwells: that stretch cannot be
+    integrated and is dropped; the dwells on both sides and the other stretches stay."""
+    from northfinder.estimators.motion_fit import place_samples
+
+    sch, idx, gyro, dwells = _stream_with_dwells()
+    _, _, _, full = place_samples(idx, gyro, dwells, 100.0)
+    mid = (dwells[2][1] + dwells[3][0]) // 2 - 1000
+    keep = np.ones(idx.size, bool)
+    keep[mid] = False
+    _, _, _, lost = place_samples(idx[keep], gyro[keep], dwells, 100.0)
+    assert lost["stretches_dropped"] == 1 and lost["rest"] == full["rest"]
+    stretch = dwells[3][0] - dwells[2][1] - 1
+    assert lost["motion"] == full["motion"] - stretch
+    bad = gyro.copy()
+    bad[(dwells[4][1] + dwells[5][0]) // 2 - 1000, 0] = np.nan
+    _, _, _, invalid = place_samples(idx, bad, dwells, 100.0)
+    assert invalid["stretches_dropped"] == 1
+    with pytest.raises(InputError, match="two dwells"):
+        place_samples(idx, gyro, dwells[:1], 100.0)
