@@ -139,3 +139,23 @@ def test_seed_has_help_text(tmp_path):
     proc = run_cli("find", "--help", cwd=tmp_path)
     text = " ".join(proc.stdout.split())
     assert "--seed N the simulator's random seed" in text
+
+
+def test_plan_goal_mistakes_are_one_line_and_leave_no_run_directory(tmp_path, capsys):
+    """--target-std/--time-budget: combined with the plan's own flags, without a grade on a real
+    bench, out of range or out of reach — each one line naming the flag, exit 2, nothing written."""
+    from northfinder.cli import main
+
+    out = tmp_path / "run"
+    cases = [
+        (["--simulate", "--target-std", "0.05", "--positions", "4"], "give either the goal or the plan"),
+        (["--config", str(_bench_on_no_port(tmp_path)), "--target-std", "0.05"], "give --grade"),
+        (["--simulate", "--target-std", "-1"], "--target-std -1"),
+        (["--simulate", "--time-budget", "5"], "no plan fits in 5 s"),
+        (["--simulate", "--grade", "consumer", "--target-std", "0.0001"], "no plan reaches"),
+    ]
+    for argv, expected in cases:
+        assert main(["find", *argv, "--out", str(out)]) == USAGE_EXIT, argv
+        err = capsys.readouterr().err
+        assert expected in northfinder_line(err), (argv, err)
+        assert not out.exists()
