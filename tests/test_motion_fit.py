@@ -115,7 +115,7 @@ def test_motion_terms_without_motion_are_one_clear_error():
     with pytest.raises(InputError, match="start and end at rest"):
         table_angle_from_z(np.zeros(5), 0.01, np.array([np.nan, 0, 0, 0, 0]))
     with pytest.raises(InputError, match="motion terms"):
-        motion_design(alpha, np.zeros_like(alpha), ("x", "y"), ("wobble",))
+        motion_design(alpha, np.zeros_like(alpha), ("x", "y"), ("tumble",))
 
 
 def _stream_with_dwells(rate_hz: float = 100.0):

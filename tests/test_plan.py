@@ -14,6 +14,7 @@ import pytest
 from northfinder.cli import main
 from northfinder.errors import InputError
 from northfinder.estimators import plan as P
+from northfinder.estimators.motion_fit import RUN_TERMS
 from tests.helpers import REPO, only_line, run_cli
 
 
@@ -47,7 +48,7 @@ def _monte_carlo_sigma(spec: P.PlanSpec, sensor: P.Sensor, trials: int, seed: in
         if spec.kind == "positions":
             h = TOOL.headings_positions(sch, gyro, accel, sensor, LAT)
         else:
-            h = TOOL.headings_motion(sch, gyro, accel, sensor, LAT, ("misalignment",))
+            h = TOOL.headings_motion(sch, gyro, accel, sensor, LAT, RUN_TERMS)
         out.append(h - HEADING)
     e = (np.concatenate(out) + 180.0) % 360.0 - 180.0
     return float(np.std(e, ddof=1))

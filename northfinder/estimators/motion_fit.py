@@ -22,9 +22,14 @@ from northfinder.errors import InputError
 from northfinder.estimators.harmonic import HarmonicFit
 from northfinder.estimators.methods import METHODS
 
-MOTION_TERMS = ("misalignment", "rate_squared")
-"""misalignment: δ·ω per axis (odd in ω); rate_squared: c·ω² per axis (even: centripetal
-g-sensitivity, does not cancel by reversing)."""
+MOTION_TERMS = ("misalignment", "wobble", "rate_squared")
+"""misalignment: δ·ω per axis (odd in ω); wobble: the stage bearing's twice-per-turn tilt, whose rate
+w·ẇ reads in b as ω·(−sin(α+φ), cos(α+φ)) — two coefficients shared by x and y (eq M2b; the
+once-per-turn wobble reads as a constant ω on b-y, inside δ_y); rate_squared: c·ω² per axis (even:
+centripetal g-sensitivity, does not cancel by reversing)."""
+
+RUN_TERMS = ("misalignment", "wobble")
+"""The terms the find's per-sample fit estimates (and the plan model predicts with)."""
 
 MAX_CONDITION = 1.0e4
 """Largest accepted condition number of the column-normalised per-sample design."""
@@ -77,7 +82,7 @@ def motion_design(
 
     Columns: v_x, v_y (the platform-frame Earth rate, paper eq 4 per sample), R_<axis> per axis,
     then per term and axis d_<axis> (ω [deg/s], coefficient δ in deg/h per deg/s) or
-    q_<axis> (ω² [(deg/s)²]).
+    q_<axis> (ω² [(deg/s)²]), then w_c, w_s (the wobble, shared; deg/h per deg/s).
     """
     unknown = set(terms) - set(MOTION_TERMS)
     if unknown:
@@ -88,15 +93,21 @@ def motion_design(
     c, s = np.cos(a), np.sin(a)
     names = ["v_x", "v_y"] + [f"R_{ax}" for ax in axes]
     cols = {"misalignment": ("d", w), "rate_squared": ("q", w**2)}
-    for t in terms:
+    per_axis = [t for t in terms if t in cols]
+    for t in per_axis:
         names += [f"{cols[t][0]}_{ax}" for ax in axes]
+    if "wobble" in terms:
+        names += ["w_c", "w_s"]
     blocks = []
     for ax in axes:
         block = np.zeros((m, len(names)))
         block[:, 0], block[:, 1] = (c, s) if ax == "x" else (-s, c)
         block[:, names.index(f"R_{ax}")] = 1.0
-        for t in terms:
+        for t in per_axis:
             block[:, names.index(f"{cols[t][0]}_{ax}")] = cols[t][1]
+        if "wobble" in terms:  # eq M2b: x: −ω·sin(α+φ), y: ω·cos(α+φ) = w_c·(…) + w_s·(…)
+            block[:, names.index("w_c")] = -w * s if ax == "x" else w * c
+            block[:, names.index("w_s")] = -w * c if ax == "x" else -w * s
         blocks.append(block)
     return np.vstack(blocks), tuple(names)
 

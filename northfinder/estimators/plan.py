@@ -5,7 +5,7 @@ docs/estimators.md §11 (equations P1–P5). Three kinds of plan:
 
 - ``positions``: stop-and-go, the dwell means only (today's find);
 - ``positions+motion``: the same schedule, every gyro sample fitted with its own angle
-  (motion_fit, eq M2 with the misalignment estimated) — needs a z gyro;
+  (motion_fit, eq M2 with the misalignment and the wobble estimated) — needs a z gyro;
 - ``sweep``: whole revolutions at a constant rate, alternating direction, every sample fitted
   — needs a z gyro.
 
@@ -25,7 +25,7 @@ import numpy as np
 from northfinder.constants import OMEGA_EARTH_RAD_S
 from northfinder.errors import InputError
 from northfinder.estimators.limits import noise_limit_heading_std_deg
-from northfinder.estimators.motion_fit import motion_design
+from northfinder.estimators.motion_fit import RUN_TERMS, motion_design
 
 KINDS = ("positions", "positions+motion", "sweep")
 GYRO_AXES = ("xyz", "xy", "y")
@@ -215,7 +215,7 @@ def rate_covariance_dph2(sch: Schedule, kind: str, sensor: Sensor) -> np.ndarray
     dwell means weighted by their length); the motion kinds fit every sample with δ (eq M2).
     """
     axes = sensor.horizontal_axes
-    terms = () if kind == "positions" else ("misalignment",)
+    terms = () if kind == "positions" else RUN_TERMS
     used = np.flatnonzero(sch.gyro_used)
     a_mat, _ = motion_design(sch.alpha_deg[used], sch.omega_dps[used], axes, terms)
     n_dph = sensor.arw_deg_rt_h * 60.0

@@ -23,10 +23,10 @@ from northfinder.codecs.kvh import decode_imu_stream
 from northfinder.constants import DPH
 from northfinder.errors import InputError
 from northfinder.estimators.heading import HeadingSolution, heading_with_gyro_fit
-from northfinder.estimators.motion_fit import fit_motion, place_samples
+from northfinder.estimators.motion_fit import RUN_TERMS, fit_motion, place_samples
 from northfinder.rundir import IMU_RAW, RunDir
 
-MOTION_TERMS = ("misalignment",)
+MOTION_TERMS = RUN_TERMS
 
 
 def motion_samples(rd: RunDir, events: Sequence[dict[str, Any]]) -> tuple[Any, str | None]:
@@ -79,6 +79,7 @@ def motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol: Heading
         "methods": methods,
         "terms": list(MOTION_TERMS),
         "misalignment_dph_per_dps": {ax: float(fit.coef(f"d_{ax}")[0]) for ax in axes},
+        "wobble_dph_per_dps": {k: float(fit.coef(k)[0]) for k in ("w_c", "w_s")},
         "samples": counts,
         "residual_rms_dph": {k: float(v[0]) for k, v in fit.residual_rms.items()},
     }
