@@ -151,6 +151,9 @@ def _print(choice: model.PlanChoice, sensor: model.Sensor, args: argparse.Namesp
     )
     for note in choice.notes:
         console.print(f"note: {note}")
+    if b.spec.kind == "sweep":
+        console.print("note: `find` runs positions and positions+motion; the sweep is modelled, not yet a "
+                      "find plan — `find --target-std` picks the best of those two (docs/estimators.md §12)")
     t = Table(title="alternatives (best of each kind and n; * the chosen plan)")
     for col in ("kind", "schedule", "elapsed [s]", "gyro used [s]", "σ [°]", "white [°]", "drift [°]",
                 "limit(elapsed) [°]", "σ/limit"):  # fmt: skip
