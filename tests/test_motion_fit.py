@@ -170,3 +170,32 @@ def test_place_samples_leaves_out_a_stretch_with_a_lost_or_invalid_sample():
     assert invalid["stretches_dropped"] == 1
     with pytest.raises(InputError, match="two dwells"):
         place_samples(idx, gyro, dwells[:1], 100.0)
+
+
+def test_a_knock_while_the_table_turns_is_screened_out():
+    """A 1 s knock (a 300 °/h half-sine on x and y) while the table turns: the dwells would be
+    re-measured for it, the motion samples are not — the screened fit leaves that stretch out and
+    lands within 3σ of the truth, the unscreened one does not; with no knock nothing is left out."""
+    from northfinder.estimators.motion_fit import RUN_TERMS, fit_motion_screened, place_samples
+
+    rate = 100.0
+    sch, idx, gyro, dwells = _stream_with_dwells(rate)
+    noise_dph = P.GRADES["nav"].arw_deg_rt_h * 60.0 * math.sqrt(rate)  # per-sample σ (ARW·60·√rate)
+    rng = np.random.default_rng(11)
+    noisy = gyro + rng.normal(0.0, noise_dph, gyro.shape) * np.array([1.0, 1.0, 0.0])
+    alpha, omega, g, _ = place_samples(idx, noisy, dwells, rate)
+    fit0, keep0, dropped0 = fit_motion_screened(alpha, omega, g[:, :2])
+    assert dropped0 == 0 and keep0.all()
+    knocked = noisy.copy()
+    mid = dwells[3][1] - 1000 + int(np.argmax(sch.omega_dps[dwells[3][1] - 1000 :] > 0))  # the move's start
+    pulse = 300.0 * np.sin(np.pi * np.arange(int(rate)) / rate)
+    knocked[mid : mid + int(rate), 0] += pulse
+    knocked[mid : mid + int(rate), 1] -= pulse
+    alpha, omega, g, _ = place_samples(idx, knocked, dwells, rate)
+    screened, _, dropped = fit_motion_screened(alpha, omega, g[:, :2])
+    plain = fit_motion(alpha, omega, g[:, :2], terms=RUN_TERMS)
+    assert dropped == 1
+    truth = fit0.coefficients[0, :2]  # the fit of the same noise without the knock
+    sd = np.sqrt(np.diag(screened.covariance[0])[:2])
+    assert np.all(np.abs(screened.coefficients[0, :2] - truth) < 3.0 * sd)
+    assert np.any(np.abs(plain.coefficients[0, :2] - truth) > 3.0 * sd)

@@ -251,3 +251,49 @@ def place_samples(
         counts["motion"] += between.size
     cat = np.concatenate
     return cat(alphas), cat(omegas), cat(gyros), counts
+
+
+DISTURBED_K = 6.0
+"""A stretch between dwells is left out when its mean squared residual exceeds the dwells' by more
+than this many standard deviations of a mean of squares of white noise (√(2/n) relative)."""
+
+
+def fit_motion_screened(
+    alpha_deg, omega_dps, gyro_dph, axes: tuple[str, ...] = ("x", "y"), *,
+    terms: tuple[str, ...] = RUN_TERMS, k_sigma: float = DISTURBED_K,
+) -> tuple[HarmonicFit, np.ndarray, int]:
+    """fit_motion with every stretch between dwells screened for what the model lacks (a knock on
+    the table while it turned: the dwells are re-measured for it, the motion samples are not).
+
+    Stretches are the runs of samples with ω ≠ 0 (place_samples gives rest samples ω = 0 exactly).
+    The fit is repeated leaving out the worst stretch while its mean squared residual (summed over
+    axes) is above the rest samples' by more than k_sigma·√(2/(n·k)) relative (n samples, k axes:
+    the spread of a mean of squares of white noise) — one at a time, since a big disturbance
+    drags the whole fit and raises every stretch's residual. Returns (fit, samples kept, stretches
+    left out); InputError if no motion sample is left."""
+    alpha = np.asarray(alpha_deg, dtype=float)
+    w = np.asarray(omega_dps, dtype=float)
+    y = np.asarray(gyro_dph, dtype=float)
+    keep = np.ones(w.size, dtype=bool)
+    rest = w == 0.0
+    label = np.cumsum(np.r_[0, np.diff(rest.astype(np.int8)) != 0])
+    dropped = 0
+    while True:
+        fit = fit_motion(alpha[keep], w[keep], y[keep], axes, terms=terms)
+        if not np.any(rest):
+            return fit, keep, dropped
+        a_mat, _ = motion_design(alpha, w, axes, terms)
+        resid = (y.T.reshape(-1) - a_mat @ fit.coefficients[0]).reshape(len(axes), w.size)
+        r2 = np.sum(resid**2, axis=0)
+        floor = float(np.mean(r2[rest]))
+        worst, worst_excess = None, 0.0
+        for k in np.unique(label[keep & ~rest]):
+            sel = label == k
+            n = int(sel.sum())
+            excess = (np.mean(r2[sel]) / floor - 1.0) / (k_sigma * np.sqrt(2.0 / (n * len(axes))))
+            if excess > max(1.0, worst_excess):
+                worst, worst_excess = sel, excess
+        if worst is None:
+            return fit, keep, dropped
+        keep &= ~worst
+        dropped += 1

@@ -3,7 +3,9 @@
 While the table turns and settles between two dwells the horizontal gyros still see the Earth
 rate at the table's current angle; with a z gyro each of those samples is placed at its own angle
 (estimators.motion_fit.place_samples, docs/estimators.md §10, eq M1) and the harmonic fit takes
-every sample with the table-rate term δ·ω per axis (eq M2, `MOTION_TERMS`). The tilt still comes
+every sample with the table-rate term δ·ω per axis and the stage's wobble (eq M2/M2b, `MOTION_TERMS`);
+a stretch between dwells that the model does not explain (a knock while the table turned) is left
+out (motion_fit.fit_motion_screened). The tilt still comes
 from the dwells' accelerometer fit. Live and replay call the same function on the raw log, so a
 replayed result equals the live one bit for bit.
 
@@ -23,7 +25,7 @@ from northfinder.codecs.kvh import decode_imu_stream
 from northfinder.constants import DPH
 from northfinder.errors import InputError
 from northfinder.estimators.heading import HeadingSolution, heading_with_gyro_fit
-from northfinder.estimators.motion_fit import RUN_TERMS, fit_motion, place_samples
+from northfinder.estimators.motion_fit import RUN_TERMS, fit_motion_screened, place_samples
 from northfinder.rundir import IMU_RAW, RunDir
 
 MOTION_TERMS = RUN_TERMS
@@ -68,10 +70,11 @@ def motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol: Heading
     axes = ("x", "y") if np.all(np.isfinite(gyro[:, 0])) else ("y",)
     cols = [0, 1] if axes == ("x", "y") else [1]
     try:
-        fit = fit_motion(alpha, omega, gyro[:, cols], axes, terms=MOTION_TERMS)
+        fit, kept, disturbed = fit_motion_screened(alpha, omega, gyro[:, cols], axes, terms=MOTION_TERMS)
     except InputError as exc:
         return {"available": False, "reason": str(exc)}
     heading, std, methods = heading_with_gyro_fit(sol, fit, height_m=height_m)
+    rate_hz = float(next(e for e in events if e.get("event") == "start")["imu"]["rate_hz"])
     return {
         "available": True,
         "heading_deg": heading,
@@ -80,6 +83,8 @@ def motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol: Heading
         "terms": list(MOTION_TERMS),
         "misalignment_dph_per_dps": {ax: float(fit.coef(f"d_{ax}")[0]) for ax in axes},
         "wobble_dph_per_dps": {k: float(fit.coef(k)[0]) for k in ("w_c", "w_s")},
-        "samples": counts,
+        "samples": {**counts, "stretches_disturbed": disturbed,
+                    "motion": int(np.count_nonzero(kept & (omega != 0))),
+                    "used_device_s": float(np.count_nonzero(kept)) / rate_hz},
         "residual_rms_dph": {k: float(v[0]) for k, v in fit.residual_rms.items()},
     }
