@@ -29,6 +29,22 @@ def start_text(result: dict[str, Any]) -> str:
     return f"prior {psi0:.2f}° ± {std:g}° (1σ), held while standing still"
 
 
+def time_alignment_text(ta: dict[str, Any]) -> str:
+    """The method; for `data` the correction to the host stamps with its 1σ; on the simulator each
+    estimate against the truth log; when the data could not tell, why."""
+    parts = [ta["method"]]
+    data = ta.get("data") or {}
+    if ta["method"] == "data":
+        parts.append(f"offset {data['correction_s'] * 1e3:+.1f} ± {data['std_s'] * 1e3:.1f} ms (1σ) "
+                     f"from the host stamps, {data['epochs']} epochs")
+    elif "unavailable" in data:
+        parts.append(f"(data: {data['unavailable']})")
+    vs = [f"{name} {ta[key] * 1e3:+.1f} ms" for name, key in
+          (("data", "data_minus_truth_s"), ("host stamps", "host_minus_truth_s")) if key in ta]
+    text = " ".join(parts)
+    return text + ("; against the truth log: " + ", ".join(vs) if vs else "")
+
+
 def print_gnss_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
     """The rich summary: heading ± σ, convergence, lever arm, both filters, truth and errors, counters."""
     from rich.table import Table
@@ -50,13 +66,7 @@ def print_gnss_summary(result: dict[str, Any], console: Any = None, run_dir: Pat
     head.add_row(
         "device time", f"{result['duration_device_s']:.1f} s, {result['gnss']['updates']} GNSS updates"
     )
-    ta = result["time_alignment"]
-    extra = (
-        f" (host stamps would say {ta['host_minus_truth_s'] * 1e3:+.1f} ms)"
-        if "host_minus_truth_s" in ta
-        else ""
-    )
-    head.add_row("time alignment", f"{ta['method']}{extra}")
+    head.add_row("time alignment", time_alignment_text(result["time_alignment"]))
     if "truth" in result:
         tr = result["truth"]
         _common.add_error_rows(

@@ -76,6 +76,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _common.add_flag(
         parser, "--latitude", type=float, default=None, metavar="DEG", help="simulated site latitude"
     )
+    _common.add_flag(
+        parser,
+        "--link-latency",
+        default=None,
+        metavar="MS,JITTER_MS",
+        help="gnss, simulated: the IMU and GNSS links deliver MS ± JITTER_MS (device ms) late "
+        "(imu=MS:J,gnss=MS:J per link); passed to firmware-sim",
+    )
 
 
 def parse_lever_arm(text: str | None) -> tuple[float, float, float] | None:
@@ -94,6 +102,42 @@ def parse_lever_arm(text: str | None) -> tuple[float, float, float] | None:
     if max(abs(v) for v in values) > 50.0:
         raise InputError(f"--lever-arm {text}: over 50 m from the IMU; give metres, not millimetres")
     return values  # type: ignore[return-value]
+
+
+LINK_LATENCY_EXAMPLE = "e.g. --link-latency 150,20 or --link-latency imu=0:0,gnss=150:20"
+
+
+def _latency_pair(text: str, part: str) -> None:
+    """One 'MS:JITTER_MS' (or 'MS'): numbers, latency ≥ 0, 0 ≤ jitter ≤ latency; InputError else."""
+    try:
+        values = [float(v) for v in part.split(":")]
+    except ValueError:
+        values = []
+    if len(values) not in (1, 2) or not all(math.isfinite(v) for v in values):
+        raise InputError(f"--link-latency {text}: give MS,JITTER_MS in device ms, {LINK_LATENCY_EXAMPLE}")
+    latency, jitter = values[0], values[1] if len(values) == 2 else 0.0
+    if latency < 0.0 or not 0.0 <= jitter <= latency:
+        raise InputError(
+            f"--link-latency {text}: the latency must be >= 0 and the jitter between 0 and the latency "
+            f"(device ms), {LINK_LATENCY_EXAMPLE}"
+        )
+
+
+def parse_link_latency(text: str | None) -> str | None:
+    """The firmware-sim `--link-latency` text, checked here so a mistake is one line before the
+    simulator starts: 'MS,JITTER_MS' for both links or 'imu=MS:J,gnss=MS:J'."""
+    if text is None:
+        return None
+    text = str(text).strip()
+    if "=" in text:
+        for item in text.split(","):
+            device, _, value = item.partition("=")
+            if device.strip().lower() not in ("imu", "gnss"):
+                raise InputError(f"--link-latency {text}: name the link imu or gnss, {LINK_LATENCY_EXAMPLE}")
+            _latency_pair(text, value)
+    else:
+        _latency_pair(text, text.replace(",", ":"))
+    return text
 
 
 def _check(args: argparse.Namespace) -> float | None:
@@ -117,11 +161,14 @@ def _check(args: argparse.Namespace) -> float | None:
                 raise InputError(
                     f"--{flag.replace('_', '-')} is for --simulate; a real vehicle's truth is unknown"
                 )
+        if getattr(args, "link_latency", None) is not None:
+            raise InputError("--link-latency is for --simulate; a real link's delay is what it is")
         if args.fault:
             raise InputError("--fault is for --simulate")
     if args.heading_error is not None and not math.isfinite(args.heading_error):
         raise InputError(f"--heading-error {args.heading_error}: give degrees")
     _common.check_latitude(args)
+    parse_link_latency(getattr(args, "link_latency", None))
     return duration
 
 
@@ -177,6 +224,7 @@ def _simulated_window(args: argparse.Namespace, rd: RunDir, duration: float, pri
         heading_deg=getattr(args, "heading", None),
         faults=tuple(args.fault),
         truth_log=str((rd.path / gr.TRUTH_LOG).resolve()),
+        link_latency=parse_link_latency(getattr(args, "link_latency", None)),
     )
     settings = {
         "initial_heading_deg": args.initial_heading,

@@ -36,6 +36,7 @@ import numpy as np
 
 from northfinder.align.gnss_ins import GnssAlignConfig, GnssAlignResult, GnssSeries, ImuSeries, align_gnss
 from northfinder.align.small_angle import align_gnss_small_angle
+from northfinder.align.time_offset import NoTimeInformation, estimate_time_offset
 from northfinder.codecs.kvh import KvhDecoder
 from northfinder.codecs.nmea import GnssFix, LocalEnu, checksum, fixes_to_arrays
 from northfinder.config import GnssAlignmentConfig
@@ -416,28 +417,70 @@ def window_from_logs(rd: RunDir, start: dict[str, Any], end: dict[str, Any]) -> 
     return block, fixes[: int(end["gnss"]["fixes"])]
 
 
-def time_alignment(
-    rd: RunDir, start: dict[str, Any], end: dict[str, Any], truth: TruthLog | None, gnss_last_s: float | None
-) -> tuple[float, dict]:
-    """Start of IMU sample index 0 in GNSS time: exact from the truth log's k0 on the simulator,
-    else from the host receive stamps; the host estimate is also reported on the simulator."""
-    rate = float(start["imu"]["rate_hz"])
-    info: dict[str, Any] = {}
-    host = None
+def _host_estimate(
+    rd: RunDir, start: dict[str, Any], end: dict[str, Any], gnss_last_s: float | None
+) -> dict[str, Any] | None:
+    """host_offsets on the run's logs and stamps (None: no stamps, or nothing in them)."""
     try:
-        host = host_offsets(
+        return host_offsets(
             rd.file(IMU_RAW).read_bytes(),
             read_stamps(rd.file(IMU_RX)),
             rd.file(GNSS_NMEA).read_bytes(),
             read_stamps(rd.file(GNSS_RX)),
-            rate,
+            float(start["imu"]["rate_hz"]),
             float(end["utc_ref_s"]),
             float(start.get("time_scale", 1.0)),
             int(end["imu"]["last_index"]),
             gnss_last_s,
         )
     except (InputError, FileNotFoundError):
-        host = None
+        return None
+
+
+def data_estimate(
+    imu_block: Any, fixes: list[GnssFix], rate_hz: float, utc_ref_s: float, t0_coarse_s: float
+) -> tuple[float | None, dict[str, Any]]:
+    """Refine a coarse start of IMU index 0 from the data (align.time_offset: IMU heading change
+    against GNSS course): (t0 or None, the estimate's fields or {"unavailable": why})."""
+    if imu_block is None or len(imu_block) == 0 or len(fixes) < 2:
+        return None, {"unavailable": "no IMU samples or fewer than 2 GNSS fixes"}
+    arr = fixes_to_arrays(fixes)
+    first = float(imu_block.sample_index[0]) / rate_hz
+    try:
+        est = estimate_time_offset(
+            imu_block.gyro_rad_s, imu_block.accel_g, imu_block.sample_index, rate_hz,
+            arr.time_s - utc_ref_s, arr.vel_enu_m_s, float(arr.lat_deg[0]), t0_coarse_s + first,
+        )
+    except NoTimeInformation as exc:
+        return None, {"unavailable": str(exc)}
+    return est.t0_s - first, {**est.as_dict(), "t0_s": est.t0_s - first}
+
+
+def time_alignment(
+    rd: RunDir,
+    start: dict[str, Any],
+    end: dict[str, Any],
+    truth: TruthLog | None,
+    gnss_last_s: float | None,
+    imu_block: Any = None,
+    fixes: list[GnssFix] | None = None,
+) -> tuple[float, dict]:
+    """Start of IMU sample index 0 in GNSS time (docs/gnss-alignment.md "Time alignment").
+
+    `data` (hardware and simulator): the host-stamp estimate (+ [gnss] latency_s) refined from the
+    data by align.time_offset. If the data cannot tell, hardware falls back to `host` and the
+    simulator to `truth-log`, with the reason. On the simulator the truth log's k0 is the reference
+    every estimate is reported against (`data_minus_truth_s`, `host_minus_truth_s`)."""
+    rate = float(start["imu"]["rate_hz"])
+    host = _host_estimate(rd, start, end, gnss_last_s)
+    latency = float(start.get("gnss_latency_s", 0.0))
+    t_data, data = (None, {"unavailable": "no host receive stamps to start from"})
+    if host is not None:
+        t_data, data = data_estimate(imu_block, fixes or [], rate, float(end["utc_ref_s"]),
+                                     host["t0_s"] + latency)
+    info: dict[str, Any] = {"data": data}
+    if host is not None:
+        info["host_estimate"] = {**host, "gnss_latency_s": latency}
     if truth is not None and truth.imu_t0_s is not None:
         if truth.grid_events:
             raise base.grid_moved(rd)
@@ -445,17 +488,20 @@ def time_alignment(
             raise InputError(
                 f"{rd.path}: the truth log's IMU rate {truth.imu_rate_hz:g} Hz is not the run's {rate:g} Hz"
             )
-        t0 = truth.imu_t0_s
-        info = {"method": "truth-log", "imu_k0": truth.imu_k0, "t0_s": t0}
+        t_truth = truth.imu_t0_s
+        info["truth"] = {"imu_k0": truth.imu_k0, "t0_s": t_truth}
         if host is not None:
-            info["host_estimate"] = host
-            info["host_minus_truth_s"] = host["t0_s"] - t0
-        return t0, info
+            info["host_minus_truth_s"] = host["t0_s"] + latency - t_truth
+        if t_data is not None:
+            info["data_minus_truth_s"] = t_data - t_truth
+            return t_data, {"method": "data", "t0_s": t_data, **info}
+        return t_truth, {"method": "truth-log", "t0_s": t_truth, **info}
     if host is None:
         raise InputError(f"{rd.path}: no way to align IMU and GNSS time (no truth log k0, no receive stamps)")
-    latency = float(start.get("gnss_latency_s", 0.0))
+    if t_data is not None:
+        return t_data, {"method": "data", "t0_s": t_data, **info}
     t0 = host["t0_s"] + latency
-    return t0, {"method": "host", "t0_s": t0, "gnss_latency_s": latency, **host}
+    return t0, {"method": "host", "t0_s": t0, "gnss_latency_s": latency, **host, **info}
 
 
 def load_truth(rd: RunDir, start: dict[str, Any]) -> TruthLog | None:
@@ -475,7 +521,7 @@ def result_from_run(
     """The result of a run from its window's data (live: the drivers' arrays; replay: decoded logs)."""
     truth = load_truth(rd, start)
     last = fixes[-1].time_s - float(end["utc_ref_s"]) if fixes else None
-    t0, info = time_alignment(rd, start, end, truth, last)
+    t0, info = time_alignment(rd, start, end, truth, last, imu_block, fixes)
     return compute_gnss_result(imu_block, fixes, start, end, truth, t0, info, complete=complete)
 
 

@@ -51,6 +51,9 @@ class VehicleSim:
     heading_deg: float | None = None
     faults: Sequence[str] = field(default_factory=tuple)
     truth_log: str | None = None
+    link_latency: str | None = None
+    """firmware-sim's `--link-latency` ("MS,JITTER_MS" or "imu=MS:J,gnss=MS:J", device ms): the
+    links deliver late and jittery, as USB-serial adapters on a busy host do."""
 
     def argv(self) -> list[str]:
         return firmware_sim_argv(
@@ -64,6 +67,7 @@ class VehicleSim:
                 "--latitude": None if self.latitude_deg is None else float(self.latitude_deg),
                 "--heading": None if self.heading_deg is None else float(self.heading_deg),
                 "--truth-log": self.truth_log or None,
+                "--link-latency": self.link_latency or None,
             },
             self.faults,
         )
@@ -79,6 +83,7 @@ class VehicleSim:
             "latitude_deg": self.latitude_deg,
             "heading_deg": self.heading_deg,
             "faults": list(self.faults),
+            "link_latency": self.link_latency,
         }
 
 
