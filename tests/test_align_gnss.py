@@ -42,7 +42,13 @@ def _run_cli(*argv: str, capsys) -> tuple[int, str, str]:
 # ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def e2e_run(tmp_path_factory):
-    """One simulated alignment from a 90° initial heading error (the CLI in this process)."""
+    """One simulated alignment from a 90° initial heading error (the CLI in this process).
+
+    No --link-latency here: firmware-sim's shaped links (the GNSS formats each epoch on its own,
+    ~20 ms of CPU) fall behind at 25× on this loaded host and the host then overruns the IMU
+    (3774 samples lost in one try); the 150 ± 20 ms run is docs/gnss-alignment.md's, at 2×. The
+    host stamps of this run are off by 0.1–0.7 s anyway (the reader polls the GNSS between IMU
+    reads): the data estimate starts from them."""
     out = tmp_path_factory.mktemp("align_gnss") / "run"
     json_path = out.parent / "x.json"
     t0 = time.monotonic()
@@ -77,7 +83,12 @@ def test_simulated_alignment_from_90_deg_is_within_3_sigma_of_the_truth(e2e_run)
     assert rc == 0
     assert result["kind"] == gr.KIND and result["complete"] is True
     assert result["method"] == "sincos"
-    assert result["time_alignment"]["method"] == "truth-log"
+    # the IMU–GNSS offset from the data (the hardware path), against the truth log's exact one:
+    # within 3 of its σ and within the issue's 10 ms, from wherever the host stamps put it
+    ta = result["time_alignment"]
+    assert ta["method"] == "data"
+    assert abs(ta["data_minus_truth_s"]) <= 3.0 * ta["data"]["std_s"]
+    assert 3.0 * ta["data"]["std_s"] <= 0.010
     # no line fault is injected, but a loaded host may still overrun the line (the simulator drops
     # what its client leaves unread for 1 s of wall time, as a UART does): the lost samples are
     # bridged with their uncertainty (ImuSeries.gap_variance), so the bounds below hold either way

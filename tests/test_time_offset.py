@@ -103,6 +103,21 @@ def test_sigma_matches_the_spread_over_gnss_noise_draws(drive):
     assert 0.27 <= mean_sq <= 2.74, z
 
 
+def test_a_long_imu_gap_during_a_turn_is_cut_out_not_bridged(drive):
+    """3 s of IMU samples lost mid-turn (a host overrun): linear filling would lose the heading
+    change of the gap for the rest of the segment; the estimator starts a new segment after it
+    and leaves out the epochs that could fall inside it, so the offset stays within 3σ."""
+    gyro, accel = _imu(drive)
+    keep = np.ones(len(gyro), dtype=bool)
+    keep[int(25.0 * drive.rate_hz) : int(28.0 * drive.rate_hz)] = False
+    idx = np.flatnonzero(keep)
+    est = estimate_time_offset(
+        gyro[keep], accel[keep], idx, drive.rate_hz, drive.gnss_t_s, drive.gnss_vel_enu_m_s, 40.0, -0.2
+    )
+    assert abs(est.t0_s) <= 3.0 * est.std_s
+    assert 3.0 * est.std_s <= GOAL_S
+
+
 def _straight(duration_s: float, speed_m_s: float):
     """Synthetic IMU (level, still, no turn) and GNSS: north at a constant speed after 5 s."""
     rate = 250.0

@@ -53,6 +53,10 @@ MIN_TURN_RATE_RAD_S = 0.02
 MIN_EPOCHS = 50
 MAX_STD_S = 0.05
 """A σ above this is no information worth using (the host stamps are better)."""
+MAX_FILLED_SAMPLES = 5
+"""Lost IMU samples beyond this many in a row (20 ms at 250 Hz) break the heading integral: the
+epochs whose search window touches such a gap are left out and a new segment starts after it
+(its constant takes up the heading change the gap lost)."""
 LEVEL_S = 5.0
 """The still start (gnss_ins.GnssAlignConfig.level_s) whose mean specific force gives the vertical."""
 SEARCH_S = 2.0
@@ -110,6 +114,7 @@ class _Imu:
     psi_rad: np.ndarray  # heading change at boundaries 0 … N (N + 1 values)
     w_up: np.ndarray  # rate about the vertical at midpoints (N values)
     w_fwd: np.ndarray  # rate about the horizontal forward axis at midpoints
+    gaps: np.ndarray  # [g, 2] lost stretches longer than MAX_FILLED_SAMPLES: (first, end) dense index
 
 
 def _imu_signals(gyro_rad_s, accel_g, sample_index, rate_hz: float, latitude_deg: float) -> _Imu:
@@ -128,17 +133,20 @@ def _imu_signals(gyro_rad_s, accel_g, sample_index, rate_hz: float, latitude_deg
     w_up, w_fwd = gyro @ up, gyro @ fwd
     psi_rate = -(w_up - OMEGA_EARTH_RAD_S * math.sin(math.radians(latitude_deg)))
     psi = np.concatenate([[0.0], np.cumsum(psi_rate) / rate_hz])
-    return _Imu(float(rate_hz), int(idx[0]), psi, w_up, w_fwd)
+    jump = np.flatnonzero(np.diff(rel) > MAX_FILLED_SAMPLES + 1)
+    gaps = np.column_stack([rel[jump] + 1, rel[jump + 1]]).reshape(-1, 2)
+    return _Imu(float(rate_hz), int(idx[0]), psi, w_up, w_fwd, gaps)
 
 
-def _segments(t_s: np.ndarray) -> np.ndarray:
-    """Segment number per epoch: a new one after a gap (> 2.5 epoch spacings) or SEGMENT_S."""
+def _segments(t_s: np.ndarray, imu_gap: np.ndarray) -> np.ndarray:
+    """Segment number per epoch: a new one after a gap (> 2.5 epoch spacings), an IMU gap (the
+    count of IMU gaps before the epoch changes) or SEGMENT_S."""
     dt = np.diff(t_s)
     step = np.median(dt) if len(dt) else 1.0
     seg = np.zeros(len(t_s), dtype=np.int64)
     start = t_s[0] if len(t_s) else 0.0
     for k in range(1, len(t_s)):
-        new = dt[k - 1] > 2.5 * step or t_s[k] - start > SEGMENT_S
+        new = dt[k - 1] > 2.5 * step or t_s[k] - start > SEGMENT_S or imu_gap[k] != imu_gap[k - 1]
         seg[k] = seg[k - 1] + int(new)
         if new:
             start = t_s[k]
@@ -158,7 +166,8 @@ class _Profile:
 
     def __init__(self, imu: _Imu, t_s, course, speed, t0_coarse_s: float) -> None:
         self.imu, self.t_s, self.t0c = imu, t_s, t0_coarse_s
-        self.seg = _segments(t_s)
+        gaps_before = np.searchsorted(imu.gaps[:, 0], (t_s - t0_coarse_s) * imu.rate_hz)
+        self.seg = _segments(t_s, gaps_before)
         self.y = _unwrap_by_segment(course, self.seg)
         self.sw = speed  # √weight: the course noise is σ_v / v
         self.inv_v = 1.0 / speed
@@ -194,6 +203,10 @@ def _usable_epochs(imu: _Imu, gnss_t_s, vel_enu, t0_coarse_s: float, search_s: f
     lo = t0_coarse_s + search_s + LEVEL_S  # after the still start's levelling window
     hi = t0_coarse_s - search_s + n / imu.rate_hz
     ok = np.isfinite(speed) & (speed >= MIN_SPEED_M_S) & (t >= lo) & (t <= hi)
+    pos = (t - t0_coarse_s) * imu.rate_hz
+    reach = search_s * imu.rate_hz + 1.0
+    for first, end in imu.gaps.tolist():  # no epoch whose IMU position may fall in a gap
+        ok &= (pos + reach < first) | (pos - reach > end)
     return t[ok], np.arctan2(v[ok, 0], v[ok, 1]), speed[ok]
 
 
