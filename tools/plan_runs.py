@@ -42,6 +42,18 @@ def find(out: Path, seed: int, extra: list[str]) -> dict:
     return json.loads(Path(str(out) + ".json").read_text())
 
 
+def stream_s(run_dir: Path) -> float:
+    """Device time of the whole IMU stream in the run's raw log (opening, homing, … the return)."""
+    from northfinder.codecs.kvh import decode_imu_stream
+
+    start = next(e for e in map(json.loads, (run_dir / "events.jsonl").read_text().splitlines())
+                 if e.get("event") == "start")
+    imu = start["imu"]
+    block, _ = decode_imu_stream((run_dir / "imu.raw").read_bytes(), imu["rate_hz"], imu["rot_format"],
+                                 imu["rot_units"])
+    return float(block.sample_index[-1] - block.sample_index[0] + 1) / float(imu["rate_hz"])
+
+
 def limit_deg(grade: str, elapsed_s: float, lat: float, tilt_deg: float) -> float:
     return float(noise_limit_heading_std_deg(GRADES[grade].arw_deg_rt_h, elapsed_s, lat, tilt_deg, 90.0, 2))
 
@@ -65,7 +77,7 @@ def part1(args, tmp: Path) -> None:
         tilt = r["truth"]["pitch_deg"], r["truth"]["roll_deg"]
         tilt_deg = math.degrees(math.acos(math.cos(math.radians(tilt[0])) * math.cos(math.radians(tilt[1]))))
         span = m["samples"]["fit_span_device_s"]
-        stream = m["samples"]["stream_device_s"] - m["samples"]["before_first_dwell_s"]  # + the return
+        stream = stream_s(tmp / f"defaults{k}") - m["samples"]["before_first_dwell_s"]  # + the return
         dwell_err = (r["dwell_fit"]["heading_deg"] - r["truth"]["heading_deg"] + 180) % 360 - 180
         rows.append((dwell_err, r["dwell_fit"]["heading_std_deg"], r["error_deg"], r["heading_std_deg"],
                      limit_deg(args.grade, span, args.latitude, tilt_deg),

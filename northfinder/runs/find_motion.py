@@ -52,7 +52,6 @@ def motion_samples(rd: RunDir, events: Sequence[dict[str, Any]]) -> tuple[Any, s
     rate_hz = float(imu_cfg["rate_hz"])
     alpha, omega, placed, counts = place_samples(block.sample_index, gyro, dwells, rate_hz)
     idx = block.sample_index
-    counts["stream_device_s"] = float(idx[-1] - idx[0] + 1) / rate_hz
     counts["fit_span_device_s"] = float(max(d[1] for d in dwells) - min(d[0] for d in dwells) + 1) / rate_hz
     counts["used_device_s"] = (counts["rest"] + counts["motion"]) / rate_hz
     counts["before_first_dwell_s"] = float(min(d[0] for d in dwells) - idx[0]) / rate_hz
