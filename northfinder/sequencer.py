@@ -49,6 +49,9 @@ class _EventLog(Protocol):  # northfinder.rundir.RunDir: the sequencer only appe
 
 MIN_VISIBLE_MOVE_DEG = 0.5
 """Moves at least this long are expected to show in the gyro z before settling is judged."""
+STOPPED_REPORT_WAIT_S = 2.5
+"""Host seconds to wait for a heartbeat reporting the accelerometer stopped (it normally arrived
+during the move: 1 s producer time, PROTOCOLS.md §3.1 object 1017) — only a bound of the wait."""
 SLOWEST_STAGE_DEG_S = 1.0
 """The stage speed assumed when [turntable] speed_deg_s is not given: bounds of a move are taken
 as for the slowest table supported, so a several-minute move at 1 deg/s still works."""
@@ -239,6 +242,8 @@ class Sequencer:
         IMU bytes a USB link holds back, so the first settle waits to see it (|Δα|, deg)."""
         self.positions: list[PositionMeans] = []
         self._plan: list[float] = []
+        self._accel_silent_at: int | None = None
+        """Heartbeat count when the last wait for a "stopped" report timed out (None: it did not)."""
 
     # -- helpers -----------------------------------------------------------------------------
     def _event(self, event: dict[str, Any]) -> None:
@@ -455,11 +460,25 @@ class Sequencer:
         return n / rate
 
     def _start_accelerometer(self, quiet_s: float = 0.1, timeout_s: float = 10.0) -> None:
-        """NMT start, once the CAN link has delivered everything sent before the last NMT stop.
+        """NMT start, once everything the node sent before the last NMT stop has arrived (and is dropped).
 
-        The node was stopped before the move, so once nothing more arrives (host time: this only
-        drains a link that lags) every sample that follows was taken after the start.
+        Decided in device order: a heartbeat reporting "stopped" after the stop command comes after
+        every TPDO the node sent before it (the bus keeps a node's order), so what is pending then
+        is all from before the stop. A node whose heartbeat is off or lost (no report within
+        STOPPED_REPORT_WAIT_S; not waited for again until a heartbeat comes back): the link is
+        drained until nothing arrives for quiet_s — host time, and the events log says so.
         """
+        hb = int(self.accel.stats.heartbeats)
+        waited = self._accel_silent_at != hb and self.accel.wait_stopped_report(STOPPED_REPORT_WAIT_S)
+        if waited:
+            self._accel_silent_at = None
+            self.accel.discard_pending()
+            self.accel.start_node()
+            return
+        if self._accel_silent_at != hb:
+            self._event({"event": "accel_drain", "by": "host quiet",
+                         "why": "no heartbeat reported the node stopped"})
+        self._accel_silent_at = int(self.accel.stats.heartbeats)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             self._check_stop()

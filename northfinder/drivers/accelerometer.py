@@ -85,6 +85,8 @@ ABORT_MEANINGS = {
     0x08000022: "not allowed in the present device state",
 }
 DEVICE = "accelerometer"
+NMT_STOPPED = 0x04
+"""Heartbeat state byte of a stopped node (PROTOCOLS.md §3)."""
 
 
 def decode_can_log(path: str | Path, node_id: int = 0x10, dbc_path: str | Path | None = None,
@@ -197,6 +199,9 @@ class Accelerometer:
         self._decoder = AccelFrameDecoder(self.codec)
         self._error: BaseException | None = None
         self._last_heartbeat: float | None = None
+        self._stopped_reports = 0
+        """Heartbeats that reported NMT state stopped (0x04), counted in bus order."""
+        self._stop_mark = 0
         self._logger: can.Listener | None = None
         if log_path is not None:
             Path(log_path).parent.mkdir(parents=True, exist_ok=True)
@@ -257,6 +262,8 @@ class Accelerometer:
     def _on_heartbeat(self, state: int) -> None:
         with self._lock:
             self._decoder.on_heartbeat(state)
+            if int(state) == NMT_STOPPED:
+                self._stopped_reports += 1
             self._last_heartbeat = time.monotonic()
             self._lock.notify_all()
 
@@ -283,7 +290,23 @@ class Accelerometer:
 
     def stop_node(self) -> None:
         """NMT stop: the node stops sending data (heartbeats go on)."""
+        with self._lock:
+            self._stop_mark = self._stopped_reports
         self._nmt(0x02)
+
+    def wait_stopped_report(self, timeout_s: float) -> bool:
+        """Wait until a heartbeat received after the last :meth:`stop_node` reports state stopped.
+
+        The bus delivers a node's frames in the order it sent them, so once that heartbeat is here
+        every TPDO the node sent before it stopped has arrived too: what is pending then is all from
+        before the stop (device order, not host quiet). False after `timeout_s` (heartbeat off or lost).
+        """
+        with self._lock:
+            try:
+                self._wait_locked(lambda: self._stopped_reports > self._stop_mark, timeout_s, lambda: "")
+            except DeviceError:
+                return False
+            return True
 
     def enter_pre_operational(self) -> None:
         """NMT enter pre-operational: SDO works, mapping and rate may be written, no TPDOs."""
