@@ -223,3 +223,25 @@ def test_a_late_but_complete_burst_over_slcan_is_not_a_loss(pty_pair):
     assert len(block) == 80 and block.lost_samples == 0 and stats.lost_samples == 0
     assert np.all(np.diff(block.counter) == 1)
     assert block.accel_g[:, 0].tolist() == [c / 1e6 for c in range(250, 330)]
+
+
+def test_a_stopped_report_after_the_stop_marks_everything_sent_before_it(channel, node):
+    """stop_node, then TPDOs the link still delivers, then the node's heartbeat "stopped" (0x04):
+    wait_stopped_report is False before that heartbeat (an operational or a stale one does not
+    count) and True after it, and every TPDO that came before it is pending, to be dropped."""
+    codec = CanCodec()
+    node_id = 0x10
+    with Accelerometer("virtual", channel) as acc:
+        _send(node, 0x700 + node_id, bytes([0x04]))  # a stopped report from before the stop command
+        _wait(lambda: acc.stats.heartbeats == 1)
+        acc.stop_node()
+        assert acc.wait_stopped_report(0.05) is False
+        for c in range(3):  # sent before the node stopped, delivered late
+            _send(node, *codec.encode("TPDO1", {"accel_x": c, "accel_y": 0}))
+            _send(node, *codec.encode("TPDO2", {"accel_z": 0, "temperature": 0, "counter": c, "status": 7}))
+        _send(node, 0x700 + node_id, bytes([0x05]))  # operational: not the report
+        _wait(lambda: acc.stats.heartbeats == 2)
+        assert acc.wait_stopped_report(0.05) is False
+        _send(node, 0x700 + node_id, bytes([0x04]))
+        assert acc.wait_stopped_report(3.0) is True
+        assert acc.discard_pending() == 3
