@@ -178,17 +178,23 @@ class _Profile:
         self.nuis[rows, 2 * self.seg] = 1.0
         self.nuis[rows, 2 * self.seg + 1] = t_rel
         self.n_seg = n_seg
+        # the segment columns do not depend on τ: project them out once (Frisch–Waugh–Lovell), so
+        # each τ costs a projection and a 2-column fit instead of a (2·segments + 2)-column one
+        self.q, _ = np.linalg.qr(self.nuis * self.sw[:, None])
+
+    def _resid(self, x: np.ndarray) -> np.ndarray:
+        return x - self.q @ (self.q.T @ x)
 
     def fit(self, tau: float) -> tuple[float, np.ndarray, np.ndarray]:
-        """(S, coefficients, weighted residuals) at offset τ."""
+        """(S, the two lever-arm coefficients, weighted residuals) at offset τ."""
         pos = (self.t_s - self.t0c - tau) * self.imu.rate_hz  # IMU boundary position (fractional)
         bnd = np.arange(len(self.imu.psi_rad))
         mid = np.arange(len(self.imu.w_up)) + 0.5
         psi = np.interp(pos, bnd, self.imu.psi_rad)
         w_up = np.interp(pos, mid, self.imu.w_up)
         w_fwd = np.interp(pos, mid, self.imu.w_fwd)
-        a = np.column_stack([self.nuis, -w_up * self.inv_v, w_fwd * self.inv_v]) * self.sw[:, None]
-        b = (self.y - psi) * self.sw
+        a = self._resid(np.column_stack([-w_up * self.inv_v, w_fwd * self.inv_v]) * self.sw[:, None])
+        b = self._resid((self.y - psi) * self.sw)
         coef, *_ = np.linalg.lstsq(a, b, rcond=None)
         r = b - a @ coef
         return float(r @ r), coef, r
