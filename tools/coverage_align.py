@@ -92,8 +92,8 @@ def coverage(err: np.ndarray, std: np.ndarray) -> list[float]:
 class GnssBench:
     """The drive's truth once (increments and antenna track); per seed only the errors change."""
 
-    def __init__(self, grade: str, rate_hz: float = 250.0, gnss_rate_hz: float = 10.0):
-        self.grade, self.rate_hz = grade, rate_hz
+    def __init__(self, grade: str, rate_hz: float = 250.0, gnss_rate_hz: float = 10.0, noise: str = "grade"):
+        self.grade, self.rate_hz, self.noise = grade, rate_hz, noise
         self.traj = VehicleTrajectory(duration_s=MOTION_START_S + max(GNSS_TIMES_S))
         self.site = Site(LAT_DEG, 100.0)
         world = World(self.site, self.traj, TableMotion(power_on_deg=0.0, ringing_amplitude_deg=None))
@@ -101,6 +101,16 @@ class GnssBench:
         self.dth, self.dv = world.increments(0.0, n, 1.0 / rate_hz)
         self.t_fix = np.arange(1, int(np.floor(self.traj.duration_s * gnss_rate_hz)) + 1) / gnss_rate_hz
         self.pos, self.vel = self.traj.antenna_enu(self.t_fix, LEVER_TRUTH_M)
+
+    def config(self, prior_std_deg: float | None) -> GnssAlignConfig:
+        """The filter as the CLI's simulated run sets it up: lever arm 0 ± 1 m, the prior, and the IMU
+        noise of the grade (`noise` "grade": the simulated run knows it) or the conservative defaults."""
+        return GnssAlignConfig.for_imu_grade(
+            self.grade if self.noise == "grade" else None,
+            heading_std_deg=prior_std_deg,
+            lever_arm_b_m=(0.0, 0.0, 0.0),
+            lever_arm_std_m=1.0,
+        )
 
     def heading_deg(self, t_s) -> np.ndarray:
         return np.rad2deg(self.traj.heading_rad(np.asarray(t_s, float))[0])
@@ -135,8 +145,7 @@ def gnss_run(bench: GnssBench, seed: int, prior_std_deg: float | None) -> dict:
     imu, gnss = bench.data(seed)
     rng = np.random.default_rng([seed, 7])
     e0 = float(rng.uniform(-180.0, 180.0) if prior_std_deg is None else rng.normal(0.0, prior_std_deg))
-    cfg = GnssAlignConfig(heading_std_deg=prior_std_deg, lever_arm_b_m=(0.0, 0.0, 0.0), lever_arm_std_m=1.0)
-    res = align_gnss(imu, gnss, float(bench.heading_deg(0.0)) + e0, cfg)
+    res = align_gnss(imu, gnss, float(bench.heading_deg(0.0)) + e0, bench.config(prior_std_deg))
     h = res.history
     err = np.asarray(wrap_deg_180(h.heading_deg - bench.heading_deg(h.t_s)), float)
     idx = [min(int(np.searchsorted(h.t_s, MOTION_START_S + t - 1e-6)), len(h.t_s) - 1) for t in GNSS_TIMES_S]
@@ -152,8 +161,7 @@ def gnss_run(bench: GnssBench, seed: int, prior_std_deg: float | None) -> dict:
 def time_to_1deg(bench: GnssBench, seed: int, e0_deg: float, prior_std_deg: float | None) -> float | None:
     """Seconds after motion start from which |error| < 1° to the end (None: never)."""
     imu, gnss = bench.data(seed)
-    cfg = GnssAlignConfig(heading_std_deg=prior_std_deg, lever_arm_b_m=(0.0, 0.0, 0.0), lever_arm_std_m=1.0)
-    h = align_gnss(imu, gnss, float(bench.heading_deg(0.0)) + e0_deg, cfg).history
+    h = align_gnss(imu, gnss, float(bench.heading_deg(0.0)) + e0_deg, bench.config(prior_std_deg)).history
     err = np.asarray(wrap_deg_180(h.heading_deg - bench.heading_deg(h.t_s)), float)
     bad = np.nonzero(np.abs(err) >= 1.0)[0]
     if len(bad) and bad[-1] == len(err) - 1:
@@ -269,6 +277,12 @@ def main(argv=None) -> int:
     ap.add_argument("--grade", default="kvh1760", help="GNSS mode's IMU grade")
     ap.add_argument("--swaying-grade", default="nav")
     ap.add_argument("--swaying-rate", type=float, default=100.0)
+    ap.add_argument(
+        "--gnss-noise",
+        choices=("grade", "default"),
+        default="grade",
+        help="GNSS filter's IMU noise: the grade's data-sheet figures (as a simulated run) or the defaults",
+    )
     ap.add_argument("--gnss-prior", default="unknown", help="'unknown' or the prior's 1σ in degrees")
     args = ap.parse_args(argv)
     args.out_dir.mkdir(parents=True, exist_ok=True)
@@ -276,10 +290,10 @@ def main(argv=None) -> int:
     out, md = {"args": {k: str(v) for k, v in vars(args).items()}}, []
     t_wall = time.perf_counter()
     if args.mode == "gnss-ttc":
-        md.append(ttc_table(GnssBench(args.grade), seeds))
+        md.append(ttc_table(GnssBench(args.grade, noise=args.gnss_noise), seeds))
     if args.mode in ("gnss", "both"):
         prior = None if args.gnss_prior == "unknown" else float(args.gnss_prior)
-        bench = GnssBench(args.grade)
+        bench = GnssBench(args.grade, noise=args.gnss_noise)
         runs = []
         for s in seeds:
             runs.append(gnss_run(bench, s, prior))
@@ -292,7 +306,7 @@ def main(argv=None) -> int:
         zs = [r["max_z_after_1deg"] for r in runs if r["max_z_after_1deg"] is not None]
         prior_text = "unknown (uniform initial error)" if prior is None else f"{prior:g}°"
         title = (
-            f"GNSS, {args.grade}, prior {prior_text}"
+            f"GNSS, {args.grade}, filter noise {args.gnss_noise}, prior {prior_text}"
             f"; largest |error|/σ once σ < 1°: median {np.median(zs):.1f}, max {np.max(zs):.1f}"
         )
         text, rows = table(title, GNSS_TIMES_S, runs, "s after motion")

@@ -52,6 +52,12 @@ def print_gnss_summary(result: dict[str, Any], console: Any = None, run_dir: Pat
     console = _common.summary_console(console, 132)
     head = _common.summary_head("northfinder align --mode gnss", result)
     head.add_row("start", start_text(result))
+    noise = result.get("imu_noise") or {}
+    if noise:
+        src = noise["noise_source"]
+        head.add_row("IMU noise", f"{src}: ARW {noise['gyro_arw_deg_sqrt_h']:g} °/√h, VRW "
+                     f"{noise['accel_vrw_ug_sqrt_hz']:g} µg/√Hz"
+                     + (" (conservative: IMU grade not known)" if src == "default" else ""))
     head.add_row(
         "converged after",
         f"{_f(from_window_start(result, result['converged_after_s']), '.1f')} s (1σ < 1° from then on; "

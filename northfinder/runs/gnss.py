@@ -235,12 +235,20 @@ def _initial_heading(flt: dict[str, Any], truth_start_deg: float | None) -> floa
     return float(initial if initial is not None else 0.0)
 
 
+def imu_grade(start: dict[str, Any]) -> str | None:
+    """The IMU grade when known: the simulator's (`simulate.grade`) or the run's `filter.imu_grade`;
+    None on hardware without it (the filter then keeps its conservative default noise)."""
+    return (start.get("simulate") or {}).get("grade") or start["filter"].get("imu_grade") or None
+
+
 def _both_filters(
-    imu: ImuSeries, gnss: GnssSeries, psi0: float, flt: dict[str, Any]
+    imu: ImuSeries, gnss: GnssSeries, psi0: float, flt: dict[str, Any], grade: str | None = None
 ) -> tuple[GnssAlignResult, GnssAlignResult]:
-    """The sin/cos heading filter (the result) and the small-angle filter, on the same data."""
+    """The sin/cos heading filter (the result) and the small-angle filter, on the same data; the IMU
+    noise of `grade` when it is known (GnssAlignConfig.for_imu_grade)."""
     heading_std = flt.get("heading_std_deg")
-    cfg = GnssAlignConfig(
+    cfg = GnssAlignConfig.for_imu_grade(
+        grade,
         heading_std_deg=heading_std,
         lever_arm_b_m=tuple(flt["lever_arm_prior_m"]),
         lever_arm_std_m=float(flt["lever_arm_std_m"]),
@@ -355,7 +363,7 @@ def compute_gnss_result(
     truth_start = float(truth.heading_at(t_start_imu)) if truth is not None else None
     psi0 = _initial_heading(flt, truth_start)
     heading_std = flt.get("heading_std_deg")
-    main, small = _both_filters(imu, gnss, psi0, flt)
+    main, small = _both_filters(imu, gnss, psi0, flt, imu_grade(start))
     h = main.history
     t_last = float(h.t_s[-1])
     result: dict[str, Any] = {
@@ -379,6 +387,7 @@ def compute_gnss_result(
         "initial_heading_std_deg": heading_std,
         "lever_arm_prior_m": list(flt["lever_arm_prior_m"]),
         "lever_arm_prior_std_m": float(flt["lever_arm_std_m"]),
+        "imu_noise": dict(main.extra),
         "position": dict(
             zip(
                 ("lat_deg", "lon_deg", "height_m"),
