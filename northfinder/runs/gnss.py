@@ -12,6 +12,9 @@ Why here: the CLI (northfinder/cli/align_gnss.py) and `northfinder replay` share
 replayed result is bit-identical.
 
 Time alignment (IMU sample index ↔ GNSS time), docs/result-schema-align.md "## gnss":
+- `data` (hardware and simulator, docs/gnss-alignment.md §12): the host estimate below refined from
+  the data (align.time_offset: IMU heading change against GNSS course, lever arm as a nuisance);
+  the simulator reports it against the truth log. When the data cannot tell: `host` / `truth-log`.
 - simulator (`truth-log`): firmware-sim's truth log names the absolute sample k0 of the first
   IMU frame delivered to this client, so sample index i starts at device time (k0 + i)/rate; NMEA
   UTC − gnss_start_utc is device time. Exact.
