@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from northfinder.align.gnss_ins import IMU_GRADES
 from northfinder.align.limits import latitude_problem
 from northfinder.align.swaying import METHODS as SWAYING_METHODS
 from northfinder.errors import ConfigError
@@ -66,6 +67,9 @@ class ImuConfig:
     """Gyro field as the IMU is configured to send it (`?ROTFMT`): DELTA angle or RATE."""
     rot_units: str = "RAD"
     """Gyro units (`?ROTUNITS`): RAD or DEG."""
+    grade: str = ""
+    """align --mode gnss: the IMU class (nav, kvh1760, tactical-mems, consumer) whose data-sheet noise the
+    filter then uses (gnss_ins.IMU_GRADES); empty: not known, conservative default noise."""
 
 
 @dataclass
@@ -396,6 +400,8 @@ def _validate_align(cfg: BenchConfig, need: Callable[[bool, str, Any, str], None
     formats, units = ", ".join(ROT_FORMATS), ", ".join(ROT_UNITS)
     need(i.rot_format in ROT_FORMATS, "[imu] rot_format", i.rot_format, f"use one of {formats}")
     need(i.rot_units in ROT_UNITS, "[imu] rot_units", i.rot_units, f"use one of {units}")
+    need(not i.grade or i.grade in IMU_GRADES, "[imu] grade", i.grade,
+         f"use one of {', '.join(IMU_GRADES)}, or leave it out (conservative default noise)")
     need(g.baudrate > 0, "[gnss] baudrate", g.baudrate, "use a positive baud rate")
     for key, v in (("[gnss] lever_arm_std_m", g.lever_arm_std_m), ("[gnss] vel_std_m_s", g.vel_std_m_s)):
         need(math.isfinite(v) and v > 0, key, v, "use a number greater than 0")

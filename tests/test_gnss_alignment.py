@@ -390,3 +390,18 @@ def test_imu_grade_sets_the_noise_and_the_result_says_which(data):
           f"grade error {err_g[-1]:+.4f}°")
     assert res_g.heading_std_deg < res_d.heading_std_deg
     assert abs(err_g[-1]) <= 3.0 * res_g.heading_std_deg
+
+
+def test_bench_imu_grade_key_is_checked_in_one_line(tmp_path):
+    """`[imu] grade` names the IMU class for align --mode gnss; a wrong name is one line naming the key
+    and the classes; a right one loads (the run then passes it as filter.imu_grade)."""
+    from northfinder import config
+    from northfinder.errors import ConfigError
+
+    f = tmp_path / "bench.toml"
+    base = '[gnss]\nport = "/dev/y"\n[site]\nlatitude_deg = 40\n[imu]\nport = "/dev/x"\n'
+    f.write_text(base + 'grade = "kvh-1760"\n')
+    with pytest.raises(ConfigError, match=r"\[imu\] grade = 'kvh-1760'.*kvh1760"):
+        config.load(f)
+    f.write_text(base + 'grade = "kvh1760"\n')
+    assert config.load(f).imu.grade == "kvh1760"

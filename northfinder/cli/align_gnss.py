@@ -274,6 +274,7 @@ def _bench_window(
         "lever_arm_std_m": g.lever_arm_std_m if prior is not None else UNKNOWN_LEVER_ARM_STD_M,
         "pos_std_m": list(g.pos_std_m),
         "vel_std_m_s": g.vel_std_m_s,
+        "imu_grade": bench.imu.grade or None,  # the filter's IMU noise (runs/gnss.imu_grade)
     }
     return live.acquire(
         rd,
