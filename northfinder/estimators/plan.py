@@ -186,6 +186,27 @@ def schedule(spec: PlanSpec, stage: Stage, dt_s: float = 0.1) -> Schedule:
     return b.build(spec.n * spec.dwell_s)
 
 
+def _backward_ar1(p: np.ndarray, phi: float) -> np.ndarray:
+    """g_j = p_j + φ·g_{j+1} along the last axis (g past the end = 0), in numpy: within blocks short
+    enough that φ^len ≥ e^−200, g_j = φ^−j·Σ_{k≥j} φ^k·p_k by a reversed cumulative sum; the block
+    after carries in as φ^(end−j)·g_end. (scipy.signal.lfilter does the same but costs 1.7 s to import.)"""
+    n = p.shape[-1]
+    out = np.empty_like(p, dtype=float)
+    decay = -math.log(phi) if phi > 0.0 else math.inf
+    block = n if decay == 0.0 else max(1, min(n, int(200.0 / decay)))
+    carry = np.zeros(p.shape[:-1])
+    end = n
+    while end > 0:
+        start = max(0, end - block)
+        k = np.arange(end - start)
+        w = phi**k
+        tail = np.cumsum((p[..., start:end] * w)[..., ::-1], axis=-1)[..., ::-1]
+        out[..., start:end] = tail / w + phi ** (end - start - k) * carry[..., None]
+        carry = out[..., start]
+        end = start
+    return out
+
+
 def _drift_cov(p_axis: np.ndarray, dt: float, sensor: Sensor) -> np.ndarray:
     """Covariance of the LS error from bias drift on one axis (eq P3): e = Σ_k P_k d_k.
 
@@ -198,9 +219,7 @@ def _drift_cov(p_axis: np.ndarray, dt: float, sensor: Sensor) -> np.ndarray:
         cov += (sensor.rrw_dph_rt_h / 60.0) ** 2 * dt * (g @ g.T)
     if sensor.bias_instability_dph > 0.0:
         phi = math.exp(-dt / sensor.bi_correlation_s)
-        from scipy.signal import lfilter  # here, not at import: scipy.signal costs ~1 s of every CLI start
-
-        g = lfilter([1.0], [1.0, -phi], p_axis[:, ::-1], axis=1)[:, ::-1]
+        g = _backward_ar1(p_axis, phi)
         cov += sensor.bias_instability_dph**2 * (
             np.outer(g[:, 0], g[:, 0]) + (1 - phi**2) * (g[:, 1:] @ g[:, 1:].T)
         )
@@ -336,20 +355,35 @@ def _spec_for(kind: str, n: int, elapsed_s: float, stage: Stage) -> PlanSpec | N
 
 
 def _for_target(kind, n, target, sensor, lat, tilt, stage, max_s) -> Prediction | None:
-    """The shortest elapsed time of (kind, n) whose σ ≤ target: bisection on the elapsed time."""
-    lo, hi = 1.0, max_s
-    spec = _spec_for(kind, n, hi, stage)
+    """The shortest elapsed time of (kind, n) whose σ ≤ target: bisection on the elapsed time,
+    bracketed first by σ ∝ 1/√(time used) from one prediction (a few steps instead of ~15)."""
+    spec = _spec_for(kind, n, max_s, stage)
     if spec is None or predict(spec, sensor, lat, tilt, stage).sigma_deg > target:
         return None
-    for _ in range(30):
+
+    def meets(t: float) -> bool:
+        s = _spec_for(kind, n, t, stage)
+        return s is not None and predict(s, sensor, lat, tilt, stage).sigma_deg <= target
+
+    lo, hi = 1.0, max_s
+    probe = min(max_s, 300.0)
+    spec = _spec_for(kind, n, probe, stage)
+    if spec is not None:
+        p = predict(spec, sensor, lat, tilt, stage)
+        fixed = max(p.elapsed_s - p.used_s, 0.0)
+        guess = fixed + p.used_s * (p.sigma_deg / target) ** 2
+        for factor in (0.9, 1.1):  # widen until the bracket holds (drift makes σ fall slower)
+            t = min(max(guess * factor, lo), hi)
+            if factor < 1.0 and not meets(t):
+                lo = t
+            elif factor > 1.0 and meets(t):
+                hi = t
+    while hi - lo >= 0.5:
         mid = 0.5 * (lo + hi)
-        s = _spec_for(kind, n, mid, stage)
-        if s is not None and predict(s, sensor, lat, tilt, stage).sigma_deg <= target:
+        if meets(mid):
             hi = mid
         else:
             lo = mid
-        if hi - lo < 0.5:
-            break
     return predict(_spec_for(kind, n, hi, stage), sensor, lat, tilt, stage)
 
 
