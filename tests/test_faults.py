@@ -463,10 +463,21 @@ def test_sigint_while_homing_stops_the_stage_and_saves(tmp_path):
     run_dir = tmp_path / "run"
     timer: list[threading.Timer] = []
 
+    def sigint_once_homing() -> None:
+        """A real SIGINT to this process once the stage has reported HOMING (0x1E) to a TS poll —
+        the stage's own state, not a host delay that a loaded machine stretches."""
+        log = run_dir / "turntable.log"
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline:
+            if log.exists() and any("< 1TS" in ln and ln.endswith("1E\\r\\n")
+                                    for ln in log.read_text().splitlines()):
+                os.kill(os.getpid(), signal.SIGINT)
+                return
+            time.sleep(0.005)
+
     def hook(p) -> None:
         if p.phase == "reference" and not timer:
-            # a real SIGINT to this process 0.05 s (wall) into homing; measure's handler takes it
-            timer.append(threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)))
+            timer.append(threading.Thread(target=sigint_once_homing, daemon=True))
             timer[0].start()
 
     try:
@@ -474,7 +485,7 @@ def test_sigint_while_homing_stops_the_stage_and_saves(tmp_path):
             _in_process(run_dir, [], on_progress=hook)
     finally:
         for t in timer:
-            t.cancel()
+            t.join(timeout=25.0)
     assert info.value.exit_code == 130 and "SIGINT" in str(info.value) and "0 of 8" in str(info.value)
     events = _events(run_dir)
     assert [e["event"] for e in events if e["event"] in ("home", "abort")] == ["home", "abort"]
