@@ -171,3 +171,25 @@ def start_sim(*argv: str) -> subprocess.Popen[str]:
         env=subprocess_env(),
         start_new_session=True,
     )
+
+
+def load_tool(name: str):
+    """tools/<name>.py as a module (tools are scripts, not a package), registered in sys.modules
+    under its name so that its dataclasses can look their module up."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, REPO / "tools" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault(name, mod)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def advance_and_read(sim, client, t_s: float, out: bytearray) -> None:
+    """Advance an in-process simulator's IMU to device time t_s and read what it wrote from the
+    client side of its pty, pushing its backlog through until none is left."""
+    sim.imu.advance(float(t_s))
+    while sim.imu.port.pending:
+        sim.imu.port.flush()
+        out += client.read(client.in_waiting or 1)
+    out += client.read(client.in_waiting)

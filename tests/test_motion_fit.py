@@ -4,9 +4,7 @@ from tools/plan_vs_limit.py's own forward model (CONVENTIONS.md frames, written 
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 from dataclasses import replace
 
 import numpy as np
@@ -15,18 +13,9 @@ import pytest
 from northfinder.errors import InputError
 from northfinder.estimators import plan as P
 from northfinder.estimators.motion_fit import fit_motion, motion_design, table_angle_from_z
-from tests.helpers import REPO
+from tests.helpers import load_tool
 
-
-def _tool():
-    spec = importlib.util.spec_from_file_location("plan_vs_limit", REPO / "tools" / "plan_vs_limit.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("plan_vs_limit", mod)  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
-
-
-TOOL = _tool()
+TOOL = load_tool("plan_vs_limit")
 LAT, TILT, HEADING = 40.0, 2.0, 37.0
 ONE_WAY = P.Stage(return_to_start=False)
 

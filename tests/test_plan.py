@@ -4,9 +4,7 @@ error), the planner's choice, and `northfinder plan`'s output and one-line mista
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 
 import numpy as np
 import pytest
@@ -15,18 +13,9 @@ from northfinder.cli import main
 from northfinder.errors import InputError
 from northfinder.estimators import plan as P
 from northfinder.estimators.motion_fit import RUN_TERMS
-from tests.helpers import REPO, only_line, run_cli
+from tests.helpers import load_tool, only_line, run_cli
 
-
-def _tool():
-    spec = importlib.util.spec_from_file_location("plan_vs_limit", REPO / "tools" / "plan_vs_limit.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("plan_vs_limit", mod)  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
-
-
-TOOL = _tool()
+TOOL = load_tool("plan_vs_limit")
 LAT, TILT, HEADING, ELAPSED = 40.0, 2.0, 37.0, 240.0
 STAGE = P.Stage()
 

@@ -21,6 +21,7 @@ import math
 import numpy as np
 import pytest
 import serial
+from helpers import advance_and_read
 
 from firmware_sim.config import ConfigError, SimConfig
 from firmware_sim.devices import kvh
@@ -75,11 +76,7 @@ def _kvh_round_trip(cfg: SimConfig, angle_deg: float, t1: float, t2: float, t_en
                 sim.world.table.command_move(t1, angle_deg * D)
             if t2 <= t < t2 + 0.05:
                 sim.world.table.command_move(t2, 0.0)
-            sim.imu.advance(float(t))
-            while sim.imu.port.pending:
-                sim.imu.port.flush()
-                out += client.read(client.in_waiting or 1)
-            out += client.read(client.in_waiting)
+            advance_and_read(sim, client, t, out)
         while chunk := client.read(65536):
             out += chunk
         client.close()

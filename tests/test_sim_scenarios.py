@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import serial
+from helpers import advance_and_read
 
 from firmware_sim.cli import build_parser, config_from_args, parse_sway
 from firmware_sim.config import REFERENCE_SWAY, ConfigError, SimConfig
@@ -209,11 +210,7 @@ def test_bench_without_the_new_flags_sends_the_same_bytes_as_before(name):
             t += dt
             if k == 12:
                 sim.world.table.command_move(t, np.deg2rad(90.0))
-            sim.imu.advance(t)
-            while sim.imu.port.pending:
-                sim.imu.port.flush()
-                out += client.read(client.in_waiting or 1)
-            out += client.read(client.in_waiting)
+            advance_and_read(sim, client, t, out)
         while chunk := client.read(65536):
             out += chunk
         client.close()

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import argparse
 import math
-from datetime import UTC, datetime
-from pathlib import Path
 from typing import Any
 
 from northfinder.align.limits import latitude_problem
@@ -30,11 +28,6 @@ def check_latitude(args: argparse.Namespace) -> None:
     problem = latitude_problem(lat) if lat is not None else None
     if problem:
         raise InputError(f"--latitude {lat:g}: {problem}")
-
-
-def default_out(kind: str) -> Path:
-    """runs/<kind>-<UTC time>: the run directory when --out is not given."""
-    return Path("runs") / datetime.now(UTC).strftime(f"{kind}-%Y%m%dT%H%M%SZ")
 
 
 class DeviceTimeProgress:

@@ -208,7 +208,7 @@ def heading_prior(args: argparse.Namespace) -> tuple[float | None, float | None]
 
 
 def default_out() -> Path:
-    return _common.default_out(gr.KIND)
+    return base.default_out(gr.KIND)
 
 
 def _simulated_window(args: argparse.Namespace, rd: RunDir, duration: float, prior_std: float | None) -> Any:

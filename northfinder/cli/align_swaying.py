@@ -145,7 +145,7 @@ def _check(
 
 
 def default_out() -> Path:
-    return _common.default_out(sr.KIND)
+    return base.default_out(sr.KIND)
 
 
 def _preload_matplotlib() -> None:

@@ -14,11 +14,11 @@ import math
 import os
 import sys
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 
 from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.errors import InputError
+from northfinder.runs import base as run_base
 from northfinder.runs import campaign as cp
 from northfinder.runs.find import FindRequest, run_find
 
@@ -108,7 +108,7 @@ def _new(args: argparse.Namespace) -> tuple[Path, dict]:
             "latitude_deg": args.latitude,
             "sim_config": str(Path(args.sim_config).resolve()) if args.sim_config else None,
         }
-    out = Path(args.out) if args.out else Path("runs") / datetime.now(UTC).strftime("campaign-%Y%m%dT%H%M%SZ")
+    out = Path(args.out) if args.out else run_base.default_out("campaign")
     if (out / cp.CAMPAIGN_JSON).exists():
         raise InputError(f"--out {out}: a campaign is already there; continue it with --resume {out}")
     try:

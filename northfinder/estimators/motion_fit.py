@@ -277,12 +277,12 @@ def fit_motion_screened(
     keep = np.ones(w.size, dtype=bool)
     rest = w == 0.0
     label = np.cumsum(np.r_[0, np.diff(rest.astype(np.int8)) != 0])
+    a_mat = motion_design(alpha, w, axes, terms)[0] if np.any(rest) else None
     dropped = 0
     while True:
         fit = fit_motion(alpha[keep], w[keep], y[keep], axes, terms=terms)
-        if not np.any(rest):
+        if a_mat is None:
             return fit, keep, dropped
-        a_mat, _ = motion_design(alpha, w, axes, terms)
         resid = (y.T.reshape(-1) - a_mat @ fit.coefficients[0]).reshape(len(axes), w.size)
         r2 = np.sum(resid**2, axis=0)
         floor = float(np.mean(r2[rest]))

@@ -119,9 +119,20 @@ def window_view(progress: WindowProgress | None, duration_s: float) -> contextli
     return progress(duration_s) if progress is not None else contextlib.nullcontext(_SilentView())
 
 
+def _wall_utc() -> datetime:
+    """The one read of the host's wall clock in the runs layer: labels only (the events' `utc`, the
+    default run directory's name), never which samples form a dwell or whether any were lost."""
+    return datetime.now(UTC)
+
+
 def now_utc() -> str:
     """The host UTC time for the events' `utc` (a label, never a decision)."""
-    return datetime.now(UTC).isoformat()
+    return _wall_utc().isoformat()
+
+
+def default_out(kind: str) -> Path:
+    """runs/<kind>-<UTC time>: the run directory when --out is not given."""
+    return Path("runs") / _wall_utc().strftime(f"{kind}-%Y%m%dT%H%M%SZ")
 
 
 # ---------------------------------------------------------------------------------------------

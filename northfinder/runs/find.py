@@ -19,7 +19,6 @@ import sys
 import tomllib
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +33,7 @@ from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG, HeadingSolution
 from northfinder.estimators.means import PositionMeans, position_means
 from northfinder.history import record_or_warn
 from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session_file
-from northfinder.runs.base import ProgressView, RunContext, guard, now_utc
+from northfinder.runs.base import ProgressView, RunContext, default_out, guard, now_utc
 from northfinder.runs.base import discard_unstarted as base_discard_unstarted
 from northfinder.sequencer import Interrupted, RunFailed, Sequencer
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
@@ -129,10 +128,6 @@ def _apply_overrides(cfg: bench.BenchConfig, req: FindRequest,
     return cfg.validate()
 
 
-def default_out() -> Path:
-    return Path("runs") / datetime.now(UTC).strftime("find-%Y%m%dT%H%M%SZ")
-
-
 def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSettings | None, dict | None]:
     """The bench, the run directory, the simulator's settings and the plan's prediction (with
     --target-std/--time-budget) of a new find. The directory is made only once the configuration is
@@ -153,7 +148,7 @@ def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSetting
 
         grade = req.grade or (SimSettings.grade if req.simulate else None)
         prediction = choose_for_run(cfg, grade, req.target_std, req.time_budget)
-    rundir = RunDir(req.out or default_out())
+    rundir = RunDir(req.out or default_out("find"))
     settings = None
     if req.simulate:
         settings = SimSettings(
@@ -369,11 +364,12 @@ def _result(ctx: RunContext, positions: Sequence[PositionMeans], complete: bool)
                           prediction=(ctx.start_extra or {}).get("plan_prediction"))
 
 
-def _motion(rd: RunDir, events: Sequence[dict[str, Any]], height_m: float):
-    """The per-sample fit on this run's raw log, for compute_result (same call live and in replay)."""
+def _motion(rd: RunDir, events: Sequence[dict[str, Any]], height_m: float, block: Any = None):
+    """The per-sample fit on this run's raw log, for compute_result (same call live and in replay;
+    replay hands over the block it has decoded already)."""
     from northfinder.runs.find_motion import motion_fit_result
 
-    return lambda sol: motion_fit_result(rd, events, sol, height_m)
+    return lambda sol: motion_fit_result(rd, events, sol, height_m, block)
 
 
 def save_partial(ctx: RunContext, positions: list[PositionMeans]) -> None:
@@ -785,7 +781,7 @@ def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
             positions_planned=planned,
             faults=faults_summary(events),
             plan=start.get("plan", "positions"),
-            motion=_motion(rd, events, start.get("height_m", 0.0)),
+            motion=_motion(rd, events, start.get("height_m", 0.0), block if session == 1 else None),
             prediction=start.get("plan_prediction"),
         )
     return ReplayOutcome(result, complete, len(positions), planned, positions)

@@ -3,7 +3,7 @@
 While the table turns and settles between two dwells the horizontal gyros still see the Earth
 rate at the table's current angle; with a z gyro each of those samples is placed at its own angle
 (estimators.motion_fit.place_samples, docs/estimators.md §10, eq M1) and the harmonic fit takes
-every sample with the table-rate term δ·ω per axis and the stage's wobble (eq M2/M2b, `MOTION_TERMS`);
+every sample with the table-rate term δ·ω per axis and the stage's wobble (eq M2/M2b, `RUN_TERMS`);
 a stretch between dwells that the model does not explain (a knock while the table turned) is left
 out (motion_fit.fit_motion_screened). The tilt still comes
 from the dwells' accelerometer fit. Live and replay call the same function on the raw log, so a
@@ -28,11 +28,10 @@ from northfinder.estimators.heading import HeadingSolution, heading_with_gyro_fi
 from northfinder.estimators.motion_fit import RUN_TERMS, fit_motion_screened, place_samples
 from northfinder.rundir import IMU_RAW, RunDir
 
-MOTION_TERMS = RUN_TERMS
 
-
-def motion_samples(rd: RunDir, events: Sequence[dict[str, Any]]) -> tuple[Any, str | None]:
-    """(alpha_deg, omega_dps, gyro_dph, counts) of a one-session run, or (None, why not)."""
+def motion_samples(rd: RunDir, events: Sequence[dict[str, Any]], block: Any = None) -> tuple[Any, str | None]:
+    """(alpha_deg, omega_dps, gyro_dph, counts) of a one-session run, or (None, why not).
+    `block`: imu.raw already decoded (replay has it), else it is decoded here."""
     starts = [e for e in events if e.get("event") == "start"]
     if len(starts) != 1:
         return None, "a resumed run: its sessions' sample counters do not join"
@@ -40,11 +39,12 @@ def motion_samples(rd: RunDir, events: Sequence[dict[str, Any]]) -> tuple[Any, s
     if len(positions) < 3:
         return None, "fewer than 3 positions"
     imu_cfg = starts[0]["imu"]
-    raw_path = rd.file(IMU_RAW)
-    if not raw_path.exists():
-        return None, f"no {IMU_RAW}"
-    block, _ = decode_imu_stream(raw_path.read_bytes(), imu_cfg["rate_hz"], imu_cfg["rot_format"],
-                                 imu_cfg["rot_units"])
+    if block is None:
+        raw_path = rd.file(IMU_RAW)
+        if not raw_path.exists():
+            return None, f"no {IMU_RAW}"
+        block, _ = decode_imu_stream(raw_path.read_bytes(), imu_cfg["rate_hz"], imu_cfg["rot_format"],
+                                     imu_cfg["rot_units"])
     gyro = np.asarray(block.gyro_rad_s, dtype=float) / DPH
     if gyro.size == 0 or not np.any(np.isfinite(gyro[:, 2])):
         return None, "no gyro z: the table angle between dwells is unknown"
@@ -53,23 +53,22 @@ def motion_samples(rd: RunDir, events: Sequence[dict[str, Any]]) -> tuple[Any, s
     alpha, omega, placed, counts = place_samples(block.sample_index, gyro, dwells, rate_hz)
     idx = block.sample_index
     counts["fit_span_device_s"] = float(max(d[1] for d in dwells) - min(d[0] for d in dwells) + 1) / rate_hz
-    counts["used_device_s"] = (counts["rest"] + counts["motion"]) / rate_hz
     counts["before_first_dwell_s"] = float(min(d[0] for d in dwells) - idx[0]) / rate_hz
     return (alpha, omega, placed, counts), None
 
 
 def motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol: HeadingSolution,
-                      height_m: float = 0.0) -> dict[str, Any]:
+                      height_m: float = 0.0, block: Any = None) -> dict[str, Any]:
     """The per-sample fit's heading, 1σ and what it used (`available` False with the reason when
     the run cannot give one)."""
-    placed, why = motion_samples(rd, events)
+    placed, why = motion_samples(rd, events, block)
     if placed is None:
         return {"available": False, "reason": why}
     alpha, omega, gyro, counts = placed
     axes = ("x", "y") if np.all(np.isfinite(gyro[:, 0])) else ("y",)
     cols = [0, 1] if axes == ("x", "y") else [1]
     try:
-        fit, kept, disturbed = fit_motion_screened(alpha, omega, gyro[:, cols], axes, terms=MOTION_TERMS)
+        fit, kept, disturbed = fit_motion_screened(alpha, omega, gyro[:, cols], axes, terms=RUN_TERMS)
     except InputError as exc:
         return {"available": False, "reason": str(exc)}
     heading, std, methods = heading_with_gyro_fit(sol, fit, height_m=height_m)
@@ -79,7 +78,7 @@ def motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol: Heading
         "heading_deg": heading,
         "heading_std_deg": std,
         "methods": methods,
-        "terms": list(MOTION_TERMS),
+        "terms": list(RUN_TERMS),
         "misalignment_dph_per_dps": {ax: float(fit.coef(f"d_{ax}")[0]) for ax in axes},
         "wobble_dph_per_dps": {k: float(fit.coef(k)[0]) for k in ("w_c", "w_s")},
         "samples": {**counts, "stretches_disturbed": disturbed,
