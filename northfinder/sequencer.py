@@ -670,8 +670,8 @@ class Sequencer:
         stalls = [k for k in getattr(self.imu, "stall_indices", []) if idx[0] < k <= idx[-1]]
         if stalls:
             out.append(
-                f"imu stream paused (silent) inside the dwell at sample {stalls[0]}: a timeout, its length "
-                "unknown (the 7-bit sequence wraps)"
+                f"imu stream paused (silent) inside the dwell at sample {stalls[0]}: a timeout or bytes lost "
+                "on the line, its length unknown (the 7-bit sequence wraps)"
             )
         elif gap > self.imu_max_gap_s * rate:
             out.append(f"imu gap of {gap} samples ({gap / rate:.3f} s device time) inside the dwell")

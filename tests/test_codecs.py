@@ -154,6 +154,28 @@ def test_decoder_counts_each_perturbation_exactly():
     assert s.sequence_gaps == 3 and s.lost_samples == 4
     expected = [i for i in range(40) if i not in (10, 20, 30, 31)]
     assert out.sample_index.tolist() == expected
+    # frames 10 and 20 arrived (corrupted): their gaps are exact; 30–31's bytes never came
+    assert s.unknown_gaps == 1 and dec.unknown_gap_indices == [32]
+
+
+def test_decoder_marks_a_gap_whose_bytes_never_came_as_unknown_even_when_it_aliases():
+    """130 frames lost on the line look like 2 to the 7-bit sequence: the decoder counts 2 (all it
+    can) but marks the gap unknown, because 128·k more may be missing; a corrupted frame of the
+    same stream, whose bytes did come, is an exact gap."""
+    data, _ = _stream(300)
+    F = kvh.FRAME_SIZE
+    corrupt = bytearray(data[5 * F:6 * F])
+    corrupt[20] ^= 0x10
+    stream = data[:5 * F] + bytes(corrupt) + data[6 * F:100 * F] + data[230 * F + 7:]
+    dec = kvh.KvhDecoder()
+    out = dec.feed(stream)
+    assert dec.stats.lost_samples == 1 + 2 + 1  # frame 5, 100–229 counted as 2, frame 230 cut
+    assert dec.stats.unknown_gaps == 1
+    (k,) = dec.unknown_gap_indices
+    assert k == 231 - 128  # the index the decoder gave frame 231: one wrap short of the truth
+    assert k in out.sample_index
+    block, _ = kvh.decode_imu_stream(stream)
+    assert block.unknown_gaps == (k,)
 
 
 def test_decoder_fake_header_in_garbage_is_one_bad_crc():
@@ -183,6 +205,7 @@ def test_decoder_output_does_not_depend_on_chunking(cuts):
     for name in kvh.FRAME_DTYPE.names:
         assert np.array_equal(frames[name], ref.frames[name])
     assert chunked.stats == whole.stats
+    assert chunked.unknown_gap_indices == whole.unknown_gap_indices
 
 
 def test_gyro_scale():

@@ -263,14 +263,13 @@ def _silence_in_position_3_and_unplug_in_position_6(sim, p) -> None:
 @pytest.fixture(scope="module")
 def run_b(tmp_path_factory) -> tuple[Path, dict]:
     run_dir = tmp_path_factory.mktemp("faults") / "run_b"
-    # A 2 s device silence lasts 2/TIME_SCALE s of host time here; a real unit's lasts 2 s, well over
-    # the default link timeout (1 s). The link timeout is host time, so at TIME_SCALE× it is scaled
-    # the same way (1 s device): otherwise the silence (2000 samples, seen as an 80-sample
-    # sequence gap: the 7-bit counter aliases) could not be told from a held-back burst.
+    # A 2 s device silence lasts 2/TIME_SCALE s of host time here, far under the link timeout (1 s
+    # of host time, left at its default): the host cannot see it. The data can: the sequence shows
+    # an 80-sample gap (2000 samples, aliased by the 7-bit counter) whose bytes never came, so the
+    # decoder marks its length unknown (KvhDecoder._index) and the dwell is measured again.
     # imu-disconnect far in the future sets up the port's symlink; the hook moves it into position 6
     return run_dir, _in_process(run_dir, ["imu-disconnect=1000000:1"], positions=7,
-                                during_dwell=_silence_in_position_3_and_unplug_in_position_6,
-                                link_timeout_s=1.0 / TIME_SCALE)
+                                during_dwell=_silence_in_position_3_and_unplug_in_position_6)
 
 
 def test_imu_silent_mid_dwell_is_detected_and_the_dwell_measured_again(run_b):

@@ -6,7 +6,9 @@ with its Euler rates and the body rate ω_nb^b, all as vectorized functions of d
 
 Why this shape: the World turns this into ω_ib^b and f^b, and a filter checks them against GNSS,
 so every quantity must be the exact derivative of the one before it. The speed is a sum of
-septic smooth-steps (v is C³), the yaw rate a sum of sin⁴ bumps (ψ̇ C³), so position, heading
+septic smooth-steps (v is C³), the yaw rate a sum of sin⁴ bumps (ψ̇ C³; a step or bump wholly
+before or after the times asked for adds nothing or its closed-form total, so a short batch costs
+the few it overlaps), so position, heading
 and the suspension pitch/roll that follow the accelerations are all at least C². Velocity and
 acceleration are closed-form; position is the integral of velocity, tabulated once with
 5-point Gauss–Legendre per 50 ms cell and completed within a cell by the same rule, so
@@ -149,7 +151,13 @@ class VehicleTrajectory:
         """Speed v, v̇, v̈ along the heading (and v⃛ with jerk=True)."""
         t = np.asarray(t_s, dtype=float)
         v, vd, vdd, vddd = np.zeros_like(t), np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)
+        t_lo, t_hi = (float(t.min()), float(t.max())) if t.size else (0.0, 0.0)
         for t0, dur, dv in self._dv:
+            if t_hi <= t0:  # not begun anywhere in t
+                continue
+            if t_lo >= t0 + dur:  # over everywhere in t: S(1) = 1, its derivatives 0
+                v = v + dv
+                continue
             u = (t - t0) / dur
             v = v + dv * _smoothstep(u)
             vd = vd + dv * _smoothstep_d1(u) / dur
@@ -165,7 +173,13 @@ class VehicleTrajectory:
         t = np.asarray(t_s, dtype=float)
         psi = np.full_like(t, np.deg2rad(self.heading0_deg))
         rate, acc, jrk = np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)
+        t_lo, t_hi = (float(t.min()), float(t.max())) if t.size else (0.0, 0.0)
         for tr in self.turns:
+            if t_hi <= tr.start_s:  # not begun anywhere in t
+                continue
+            if t_lo >= tr.start_s + tr.duration_s:  # over everywhere in t: ψ += 3/8·A·T, rates 0
+                psi = psi + tr.peak_rad_s * tr.duration_s * 0.375
+                continue
             u = np.clip((t - tr.start_s) / tr.duration_s, 0.0, 1.0)
             a, k = tr.peak_rad_s, np.pi / tr.duration_s
             sn, cs = np.sin(np.pi * u), np.cos(np.pi * u)

@@ -45,6 +45,15 @@ def time_alignment_text(ta: dict[str, Any]) -> str:
     return text + ("; against the truth log: " + ", ".join(vs) if vs else "")
 
 
+def add_unknown_gap_row(head: Any, result: dict[str, Any]) -> None:
+    """Where the window was cut at a gap of unknown length (runs.base.before_unknown_gap)."""
+    cut = result.get("imu_unknown_gap")
+    if cut:
+        head.add_row("IMU cut", f"at {cut['at_s']:.1f} s into the window: {cut['why']}; the result uses "
+                     f"the {cut['kept_s']:.1f} s before it ({cut['dropped_samples']} samples after it left "
+                     "out). Keep the host from overrunning the IMU line (a lighter load, a lower rate).")
+
+
 def print_gnss_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
     """The rich summary: heading ± σ, convergence, lever arm, both filters, truth and errors, counters."""
     from rich.table import Table
@@ -73,6 +82,7 @@ def print_gnss_summary(result: dict[str, Any], console: Any = None, run_dir: Pat
         "device time", f"{result['duration_device_s']:.1f} s, {result['gnss']['updates']} GNSS updates"
     )
     head.add_row("time alignment", time_alignment_text(result["time_alignment"]))
+    add_unknown_gap_row(head, result)
     if "truth" in result:
         tr = result["truth"]
         _common.add_error_rows(
@@ -138,6 +148,7 @@ def print_swaying_summary(result: dict[str, Any], console: Any = None, run_dir: 
         f"{result['duration_device_s']:.1f} s, {imu['samples']} samples, lost "
         f"{imu['lost_samples']}, bad CRC {imu['stats']['bad_crc']}",
     )
+    add_unknown_gap_row(head, result)
     if "truth" in result:
         tr = result["truth"]
         _common.add_error_rows(

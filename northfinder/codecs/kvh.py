@@ -14,7 +14,7 @@ dtype, and unwraps the sequence number into a monotonic sample index (gaps = los
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -237,6 +237,8 @@ class ImuStats:
     bytes: int = 0
     skipped_bytes: int = 0
     discarded_frames: int = 0
+    unknown_gaps: int = 0
+    """Sequence gaps whose bytes never arrived: 128·k more samples may be missing than counted."""
     invalid_gx: int = 0
     invalid_gy: int = 0
     invalid_gz: int = 0
@@ -298,6 +300,9 @@ class KvhDecoder:
         self._skipped_pending = False
         self._last_sequence: int | None = None
         self._last_index = -1
+        self._last_end_byte = 0
+        self.unknown_gap_indices: list[int] = []
+        """Sample index of the first frame after each gap of unknown length (see `_index`)."""
         self._learn_status: list[np.ndarray] = []
         self.axes: ImuAxes | None = None
         """The unit's axes, from the status bits of the first AXES_LEARN_FRAMES frames (None before)."""
@@ -365,10 +370,17 @@ class KvhDecoder:
         self._tail = raw[keep_from:]
 
         frames = np.ascontiguousarray(accepted_rows).view(FRAME_DTYPE).ravel()
-        return self._index(frames)
+        return self._index(frames, self.stats.bytes - n + accepted)
 
-    def _index(self, frames: np.ndarray) -> DecodedFrames:
-        """Unwrap the 7-bit sequence into a monotonic index; count gaps and lost samples."""
+    def _index(self, frames: np.ndarray, start_byte: np.ndarray) -> DecodedFrames:
+        """Unwrap the 7-bit sequence into a monotonic index; count gaps and lost samples; mark the
+        gaps whose length the sequence cannot tell (`unknown_gap_indices`).
+
+        `start_byte`: each frame's offset in the whole stream. A gap is counted as the smallest jump
+        of the 7-bit number, which is exact only if no more than 127 samples went missing. Where the
+        missing samples' bytes arrived (a CRC error, a byte dropped inside a frame) it is exact; where
+        at least a frame's worth of bytes never arrived (a line overrun, a device silence), 128·k
+        more samples may have gone and the gap's length is unknown."""
         if len(frames) == 0:
             return DecodedFrames()
         seq = frames["sequence"].astype(np.int64)
@@ -377,11 +389,19 @@ class KvhDecoder:
         step[step == 0] = SEQUENCE_MODULO  # same number again: a whole wrap went missing
         index = self._last_index + np.cumsum(step)
         lost = int((step - 1).sum())
+        prev_end = np.concatenate(([self._last_end_byte], start_byte[:-1] + FRAME_SIZE))
+        bytes_missing = FRAME_SIZE * (step - 1) - (start_byte - prev_end)
+        unknown = (step > 1) & (bytes_missing >= FRAME_SIZE)
+        if self._last_sequence is None:
+            unknown[0] = False
+        self.unknown_gap_indices.extend(int(k) for k in index[unknown])
+        self.stats.unknown_gaps += int(np.count_nonzero(unknown))
         self.stats.frames += len(frames)
         self.stats.sequence_gaps += int(np.count_nonzero(step > 1))
         self.stats.lost_samples += lost
         self._last_sequence = int(seq[-1])
         self._last_index = int(index[-1])
+        self._last_end_byte = int(start_byte[-1]) + FRAME_SIZE
         self._count_invalid(frames["status"])
         return DecodedFrames(index, frames, lost)
 
@@ -416,6 +436,9 @@ class ImuBlock:
     temperature_c: np.ndarray  # float64 [n]
     lost_samples: int
     rate_hz: float
+    unknown_gaps: tuple[int, ...] = ()
+    """Index of the first sample after each gap whose length is unknown (KvhDecoder._index): the
+    time of every later sample is known only up to 128·k samples."""
 
     @property
     def valid(self) -> np.ndarray:
@@ -455,4 +478,5 @@ def decode_imu_stream(raw: bytes, rate_hz: float = 1000.0, rot_format: str = "DE
     as live), and the stream's counters."""
     decoder = KvhDecoder()
     out = decoder.feed(raw)
-    return frames_to_block(out.sample_index, out.frames, rate_hz, rot_format, rot_units), decoder.stats
+    block = frames_to_block(out.sample_index, out.frames, rate_hz, rot_format, rot_units)
+    return replace(block, unknown_gaps=tuple(decoder.unknown_gap_indices)), decoder.stats

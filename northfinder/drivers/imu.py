@@ -93,6 +93,7 @@ class Imu(StreamReader):
         self.link_timeout_s = float(link_timeout_s)
         self._stalls: list[int] = []
         self._mark_stall = False
+        self._unknown_seen = 0
         try:
             self._t = transport if transport is not None else self._open_transport()
         except BaseException:
@@ -176,9 +177,10 @@ class Imu(StreamReader):
     @property
     def stall_indices(self) -> list[int]:
         """Device sample index of the first frame after each pause of the stream (no byte for
-        `link_timeout_s` host seconds outside config mode, or a reconnect). A pause longer than 128
-        samples cannot be counted from the 7-bit sequence number (it aliases), so a sample range
-        that contains one of these indices has an unknown gap: the caller measures it again."""
+        `link_timeout_s` host seconds outside config mode, or a reconnect) and after each gap whose
+        bytes never arrived (ImuBlock.unknown_gaps). A pause longer than 128 samples cannot be
+        counted from the 7-bit sequence number (it aliases), so a sample range that contains one of
+        these indices has an unknown gap: the caller measures it again."""
         with self._cond:
             return list(self._stalls)
 
@@ -191,6 +193,10 @@ class Imu(StreamReader):
         if len(out) and self._mark_stall:
             self._stalls.append(int(out.sample_index[0]))
             self._mark_stall = False
+        unknown = self._decoder.unknown_gap_indices
+        if len(unknown) > self._unknown_seen:  # bytes lost on the line: as unknown as a pause
+            self._stalls.extend(k for k in unknown[self._unknown_seen:] if k not in self._stalls)
+            self._unknown_seen = len(unknown)
         if len(out):
             index, frames = out.sample_index, out.frames
             if self._discard_next:
@@ -235,9 +241,12 @@ class Imu(StreamReader):
                 got += k
             self._pending_n -= n
             rate, fmt, units = self.rate_hz, self.rot_format, self.rot_units
+            unknown = list(self._decoder.unknown_gap_indices)
         index = np.concatenate([c[0] for c in taken])
         frames = np.concatenate([c[1] for c in taken])
-        return frames_to_block(index, frames, rate, fmt, units)
+        block = frames_to_block(index, frames, rate, fmt, units)
+        gaps = tuple(k for k in unknown if index[0] <= k <= index[-1])
+        return replace(block, unknown_gaps=gaps) if gaps else block
 
     def discard_pending(self) -> int:
         """Drop samples decoded but not read yet (e.g. those from before a move); returns how many."""

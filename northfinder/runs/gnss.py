@@ -532,9 +532,13 @@ def result_from_run(
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The result of a run from its window's data (live: the drivers' arrays; replay: decoded logs)."""
     truth = load_truth(rd, start)
+    imu_block, cut = base.before_unknown_gap(imu_block)
     last = fixes[-1].time_s - float(end["utc_ref_s"]) if fixes else None
     t0, info = time_alignment(rd, start, end, truth, last, imu_block, fixes)
-    return compute_gnss_result(imu_block, fixes, start, end, truth, t0, info, complete=complete)
+    result, hist = compute_gnss_result(imu_block, fixes, start, end, truth, t0, info, complete=complete)
+    if cut is not None:
+        result["imu_unknown_gap"] = cut
+    return result, hist
 
 
 def replay_gnss_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:

@@ -419,10 +419,15 @@ def result_from_run(
     rd: RunDir, block: Any, start: dict[str, Any], end: dict[str, Any], complete: bool
 ) -> tuple[dict[str, Any], Any]:
     """The result of a run from its window's samples (live: the driver's arrays; replay: decoded)."""
+    block, cut = base.before_unknown_gap(block)
     truth = None
     if start.get("simulate"):
-        truth = truth_at_end(rd, start, int(end["imu"]["first_index"]), int(end["imu"]["last_index"]))
-    return compute_swaying_result(block, start, end, truth, complete=complete)
+        last = int(end["imu"]["last_index"]) if cut is None else int(block.sample_index[-1])
+        truth = truth_at_end(rd, start, int(end["imu"]["first_index"]), last)
+    result, sol = compute_swaying_result(block, start, end, truth, complete=complete)
+    if cut is not None:
+        result["imu_unknown_gap"] = cut
+    return result, sol
 
 
 def replay_swaying_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
