@@ -49,11 +49,6 @@ def motion_samples(rd: RunDir, events: Sequence[dict[str, Any]], block: Any = No
     if gyro.size == 0 or not np.any(np.isfinite(gyro[:, 2])):
         return None, "no gyro z: the table angle between dwells is unknown"
     dwells = [(e["imu"]["first_index"], e["imu"]["last_index"], e["table_angle_deg"]) for e in positions]
-    span = (min(d[0] for d in dwells), max(d[1] for d in dwells))
-    unknown = [k for k in getattr(block, "unknown_gaps", ()) if span[0] < k <= span[1]]
-    if unknown:
-        return None, (f"bytes lost on the IMU line before sample {unknown[0]}: the gap's length (so the "
-                      "table angle after it) is unknown")
     rate_hz = float(imu_cfg["rate_hz"])
     alpha, omega, placed, counts = place_samples(block.sample_index, gyro, dwells, rate_hz)
     idx = block.sample_index
