@@ -23,8 +23,10 @@ from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG
 
 METHODS = ("exact", "vector", "coordinate_transform", "uncompensated", "eq11")
 ORDERS = ("sequential", "alternating")
-RUN_PLANS = ("positions", "positions+motion")
-"""Kinds of turntable run `find` carries out (northfinder.estimators.plan.KINDS also models a sweep)."""
+RUN_PLANS = ("positions", "positions+motion", "sweep")
+"""Kinds of turntable run `find` carries out, as northfinder.estimators.plan.KINDS models them: the
+dwells only, every sample of the same stop-and-go schedule, or a sweep (rests at distinct angles
+reached the long way round, whole turns in alternating directions; plan.sweep_targets_deg)."""
 IMU_RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
 ROT_FORMATS = ("DELTA", "RATE")
 ROT_UNITS = ("RAD", "DEG")

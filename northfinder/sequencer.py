@@ -28,6 +28,7 @@ from northfinder.constants import DPH
 from northfinder.drivers.turntable import StageError
 from northfinder.errors import ConfigError, DeviceError, NorthfinderError
 from northfinder.estimators.means import PositionMeans, position_means
+from northfinder.estimators.plan import sweep_targets_deg
 from northfinder.stopflag import StopFlag
 
 log = logging.getLogger(__name__)
@@ -274,8 +275,18 @@ class Sequencer:
             raise Interrupted(self.stop_flag.signum, list(self.positions), state)
 
     def plan_deg(self) -> list[float]:
-        """The commanded angles, each shifted by whole turns into the stage's soft limits."""
+        """The commanded angles, each shifted by whole turns into the stage's soft limits; for a
+        sweep the long-way targets of estimators.plan.sweep_targets_deg, which need −360…+360."""
         lo, hi = self.turntable.soft_limits_deg()
+        if self.run_cfg.plan == "sweep":
+            targets = sweep_targets_deg(self.run_cfg.positions, self.run_cfg.start_deg)
+            if min(targets) < lo - 1e-9 or max(targets) > hi + 1e-9:
+                raise ConfigError(
+                    f"[run] plan = sweep: its moves need the stage's soft limits to span "
+                    f"{min(targets):g}…{max(targets):g}°, the stage has {lo:g}…{hi:g}° — widen them "
+                    "(SL/SR) or use plan = positions+motion"
+                )
+            return targets
         plan = []
         for a in position_plan_deg(self.run_cfg.positions, self.run_cfg.start_deg, self.run_cfg.order):
             shifted = a
@@ -561,6 +572,11 @@ class Sequencer:
         self._check_stop()
         self._reference()
         self._check_stop()
+        if self.run_cfg.plan == "sweep" and not self._has_gyro_z():
+            raise ConfigError(
+                f"[run] plan = sweep needs a gyro z to place the samples taken while the table turns; "
+                f"the IMU has gyro {self._gyro_axes()} only — use plan = positions"
+            )
         self._plan = self.plan_deg()
         n = len(self._plan)
         for i, target in enumerate(self._plan):

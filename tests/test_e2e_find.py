@@ -84,15 +84,17 @@ def _noise_limit_deg(truth: dict, total_dwell_s: float) -> float:
     )
 
 
-def _run_cfg(cfg: BenchConfig) -> BenchConfig:
+def _run_cfg(cfg: BenchConfig, plan: str = "positions+motion", positions: int = POSITIONS) -> BenchConfig:
     cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
-    cfg.run.positions = POSITIONS
+    cfg.run.positions = positions
     cfg.run.dwell_s = DWELL_S
+    cfg.run.plan = plan
     return cfg.validate()
 
 
-def _check_accuracy(result: dict, truth: dict) -> None:
-    assert result["complete"] and result["positions_measured"] == POSITIONS
+def _check_accuracy(result: dict, truth: dict, plan: str = "positions+motion",
+                    positions: int = POSITIONS) -> None:
+    assert result["complete"] and result["positions_measured"] == positions
     for p in result["positions"]:
         assert p["samples"] == int(DWELL_S * 1000)
         assert p["accel_samples"] == int(DWELL_S * ACCEL_RATE_HZ)
@@ -101,7 +103,7 @@ def _check_accuracy(result: dict, truth: dict) -> None:
     # the dwells alone (plan "positions") against the limit of the dwell time; every sample (plan
     # "positions+motion", the default) against the limit of the device time its samples span
     dwell, motion = result["dwell_fit"], result["motion_fit"]
-    assert result["plan"] == "positions+motion" and motion["available"], motion
+    assert result["plan"] == plan and motion["available"], motion
     assert result["heading_std_deg"] == motion["heading_std_deg"]
     fits = (
         ("dwells", dwell["heading_deg"], dwell["heading_std_deg"], result["duration_device_s"]),
@@ -123,10 +125,10 @@ def _check_accuracy(result: dict, truth: dict) -> None:
     assert motion["heading_std_deg"] < dwell["heading_std_deg"]  # more samples, a smaller σ
 
 
-def _check_replay(run_dir: Path) -> None:
+def _check_replay(run_dir: Path, positions: int = POSITIONS) -> None:
     live = json.loads((run_dir / RESULT).read_text())
     again = replay(run_dir)
-    assert again.complete and again.positions_measured == POSITIONS
+    assert again.complete and again.positions_measured == positions
     assert json.loads(json.dumps(jsonable(again.result))) == live  # every number, bit for bit
 
 
@@ -169,7 +171,8 @@ def test_find_against_firmware_sim_process_over_ptys_and_slcan(tmp_path, fast_st
     }
 
 
-def _in_process_run(tmp_path: Path, interface: str, channel: str) -> None:
+def _in_process_run(tmp_path: Path, interface: str, channel: str, plan: str = "positions+motion",
+                    positions: int = POSITIONS) -> dict:
     from firmware_sim.config import SimConfig
     from firmware_sim.simulator import Simulator
     from northfinder.runs.find import measure
@@ -189,15 +192,30 @@ def _in_process_run(tmp_path: Path, interface: str, channel: str) -> None:
     run_dir = tmp_path / "run"
     with Simulator(sim_cfg) as endpoints:
         assert endpoints["can"]["interface"] == interface
-        cfg = _run_cfg(bench_config(endpoints, truth["latitude_deg"]))
+        cfg = _run_cfg(bench_config(endpoints, truth["latitude_deg"]), plan, positions)
         result = measure(cfg, RunDir(run_dir), settings=settings, report=True,)
-    _check_accuracy(result, {**truth, **settings.truth(), "grade": truth["grade"]})
-    _check_replay(run_dir)
+    _check_accuracy(result, {**truth, **settings.truth(), "grade": truth["grade"]}, plan, positions)
+    _check_replay(run_dir, positions)
     assert (run_dir / "report.png").stat().st_size > 10_000
+    return result
 
 
 def test_find_with_the_accelerometer_on_a_virtual_bus_in_one_process(tmp_path):
     _in_process_run(tmp_path, "virtual", f"northfinder-e2e-{uuid.uuid4().hex[:8]}")
+
+
+def test_sweep_find_turns_whole_revolutions_both_ways_and_fits_every_sample(tmp_path):
+    """plan = sweep: the rests at 4 distinct angles reached the long way round (every move more than a
+    turn, alternating direction), the heading from every sample within 3σ and σ within 20 % of the
+    limit of the device time its samples span; replay bit for bit."""
+    from northfinder.estimators.plan import sweep_targets_deg
+
+    result = _in_process_run(tmp_path, "virtual", f"northfinder-sweep-{uuid.uuid4().hex[:8]}", "sweep", 4)
+    angles = [p["table_angle_deg"] for p in result["positions"]]
+    assert angles == pytest.approx(sweep_targets_deg(4), abs=0.01)
+    moves = np.diff(angles)
+    assert np.all(np.abs(moves) > 360.0) and np.all(np.sign(moves[1:]) == -np.sign(moves[:-1]))
+    assert result["motion_fit"]["samples"]["motion"] > result["motion_fit"]["samples"]["rest"]
 
 
 @pytest.mark.skipif(

@@ -22,7 +22,7 @@ STAGE = P.Stage()
 
 def _spec(kind: str) -> P.PlanSpec:
     if kind == "sweep":
-        return P.PlanSpec(kind, 4, rate_deg_s=P.sweep_rate_for(ELAPSED, 4, STAGE), order="alternating")
+        return P.PlanSpec(kind, 4, P.sweep_dwell_for(ELAPSED, 4, STAGE), "zigzag")
     return P.PlanSpec(kind, 8, P.positions_dwell_for(ELAPSED, 8, STAGE))
 
 
@@ -57,9 +57,20 @@ def test_the_solvers_give_plans_of_the_asked_length():
     for kind in P.KINDS:
         sch = P.schedule(_spec(kind), STAGE, 0.01)
         assert sch.elapsed_s == pytest.approx(ELAPSED, abs=0.2), kind
-    # a sweep is never planned faster than the stage: 64 revolutions do not fit in 1000 s at 20 °/s
-    assert P.sweep_rate_for(1000.0, 64, STAGE) == 0.0
-    assert 0.0 < P.sweep_rate_for(1000.0, 16, STAGE) <= STAGE.speed_deg_s
+    # a sweep's moves alone can outlast the time: 8 rests (8 moves of 405–675°) do not fit in 200 s
+    assert P.sweep_dwell_for(200.0, 8, STAGE) < 0.0
+
+
+def test_sweep_targets_turn_whole_revolutions_both_ways_to_distinct_rests():
+    for n in (3, 4, 5, 8):
+        t = np.array(P.sweep_targets_deg(n))
+        moves = np.diff(t)
+        assert np.all(np.abs(moves) > 360.0) and np.all(np.sign(moves[1:]) == -np.sign(moves[:-1]))
+        assert moves[0] > 0 and t.min() >= -360.0 and t.max() <= 360.0
+        assert sorted(np.round(t % 360.0, 9)) == [k * 360.0 / n for k in range(n)]
+    assert P.sweep_targets_deg(4) == [-360.0, 270.0, -270.0, 180.0]
+    with pytest.raises(InputError, match="at least 3"):
+        P.sweep_targets_deg(2)
 
 
 @pytest.mark.parametrize("kind", P.KINDS)

@@ -206,9 +206,7 @@ def plans(elapsed_s: float, stage: P.Stage, n: int, revolutions: int):
     d = P.positions_dwell_for(elapsed_s, n, stage)
     one_way = P.Stage(stage.speed_deg_s, stage.accel_deg_s2, stage.settle_s, stage.restart_s, False)
     d1 = P.positions_dwell_for(elapsed_s, n, one_way)
-    sweep = P.PlanSpec(
-        "sweep", revolutions, rate_deg_s=P.sweep_rate_for(elapsed_s, revolutions, stage), order="alternating"
-    )
+    sweep = P.PlanSpec("sweep", revolutions, P.sweep_dwell_for(elapsed_s, revolutions, stage), "zigzag")
     pm, pm1 = P.PlanSpec("positions+motion", n, d), P.PlanSpec("positions+motion", n, d1)
     full = ("misalignment",)
     return [
@@ -217,7 +215,7 @@ def plans(elapsed_s: float, stage: P.Stage, n: int, revolutions: int):
         ("  same, motion terms ignored", pm, "motion", (), stage),
         ("stop-and-go + motion, no return move", pm1, "motion", full, one_way),
         ("  same, motion terms ignored", pm1, "motion", (), one_way),
-        ("sweep ± whole revolutions", sweep, "motion", full, stage),
+        ("sweep (rests the long way round)", sweep, "motion", full, stage),
         ("  same, motion terms ignored", sweep, "motion", (), stage),
     ]
 

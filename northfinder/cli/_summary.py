@@ -75,7 +75,9 @@ def _plan_rows(result: dict[str, Any]) -> list[tuple[str, str]]:
     motion, dwell = result.get("motion_fit"), result.get("dwell_fit")
     if motion is not None and motion.get("available"):
         n = motion["samples"]
-        rows.append(("plan", f"positions+motion: every gyro sample, {n['used_device_s']:.1f} s from the "
+        kind = result.get("plan", "positions+motion")
+        how = " (rests reached the long way round, whole turns both ways)" if kind == "sweep" else ""
+        rows.append(("plan", f"{kind}{how}: every gyro sample, {n['used_device_s']:.1f} s from the "
                      f"first dwell to the last (dwells alone ± {dwell['heading_std_deg']:.4f}°)"))
     elif motion is not None:
         rows.append(("plan", "positions (dwells only): the motion samples could not be used — "

@@ -54,7 +54,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--plan",
         choices=bench.RUN_PLANS,
         help="positions: the dwell means only; positions+motion (default [run] plan): every gyro sample, "
-        "also those taken while the table turns and settles (needs a z gyro)",
+        "also those taken while the table turns and settles (needs a z gyro); sweep: rests at --positions "
+        "angles reached the long way round, whole turns in both directions, every sample (needs a z gyro "
+        "and soft limits -360…360)",
     )
     goal = p.add_mutually_exclusive_group()
     goal.add_argument("--target-std", type=float, metavar="DEG",

@@ -26,7 +26,7 @@ _NUMBERS = {
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("plan", help="the plan (kind, n, dwell or sweep rate) for a target σ or a time budget",
+    p = sub.add_parser("plan", help="the plan (kind, n, dwell) for a target σ or a time budget",
                        description=__doc__)  # fmt: skip
     p.add_argument("--grade", metavar="NAME", help=f"sensor preset: {', '.join(model.GRADES)}")
     p.add_argument("--latitude", metavar="DEG", required=True, help="site latitude [deg], north positive")
@@ -151,9 +151,6 @@ def _print(choice: model.PlanChoice, sensor: model.Sensor, args: argparse.Namesp
     )
     for note in choice.notes:
         console.print(f"note: {note}")
-    if b.spec.kind == "sweep":
-        console.print("note: `find` runs positions and positions+motion; the sweep is modelled, not yet a "
-                      "find plan — `find --target-std` picks the best of those two (docs/estimators.md §12)")
     t = Table(title="alternatives (best of each kind and n; * the chosen plan)")
     for col in ("kind", "schedule", "elapsed [s]", "gyro used [s]", "σ [°]", "white [°]", "drift [°]",
                 "limit(elapsed) [°]", "σ/limit"):  # fmt: skip

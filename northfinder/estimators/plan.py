@@ -6,8 +6,9 @@ docs/estimators.md §11 (equations P1–P5). Three kinds of plan:
 - ``positions``: stop-and-go, the dwell means only (today's find);
 - ``positions+motion``: the same schedule, every gyro sample fitted with its own angle
   (motion_fit, eq M2 with the misalignment and the wobble estimated) — needs a z gyro;
-- ``sweep``: whole revolutions at a constant rate, alternating direction, every sample fitted
-  — needs a z gyro.
+- ``sweep``: n rests at equally spaced angles visited in a zig-zag, each move the long way round
+  (360° + the step, alternating direction, at the stage's speed), short dwells at rest for the
+  tilt and the encoder, every sample fitted (`sweep_targets_deg`) — needs a z gyro.
 
 σ is predicted exactly for the linear-Gaussian model on a time grid: the white part from the
 plan's own design (AᵀWA)⁻¹ (P2), the bias drift (Gauss–Markov bias instability and rate random
@@ -76,19 +77,39 @@ class Stage:
 
 @dataclass(frozen=True)
 class PlanSpec:
-    """kind, n (positions, or revolutions of a sweep), dwell_s (positions), sweep rate (sweep),
-    order ("sequential" for positions, "alternating" directions for a sweep)."""
+    """kind, n (positions, or the rests of a sweep), dwell_s at each, order ("sequential" for
+    positions, "zigzag" for a sweep: the visiting order of `sweep_targets_deg`)."""
 
     kind: str
     n: int
     dwell_s: float = 0.0
-    rate_deg_s: float = 0.0
     order: str = "sequential"
 
     def describe(self) -> str:
         if self.kind == "sweep":
-            return f"{self.n} rev × {self.rate_deg_s:.3g} °/s, ± alternating"
+            return f"{self.n} rests × {self.dwell_s:.1f} s, moves of 1–2 turns, ± alternating"
         return f"{self.n} × {self.dwell_s:.1f} s, {self.order}"
+
+
+def sweep_targets_deg(n: int, start_deg: float = 0.0) -> list[float]:
+    """The stage targets of a sweep [deg, absolute, inside −360…+360]: n equally spaced angles
+    a_k = start + k·360/n (taken in [0, 360)), visited lowest, highest, second lowest, second
+    highest, …; a low one is reached at a − 360, a high one at a. Every move then goes up from a
+    low landing to a higher angle or down from a high landing to a lower one, so each is 360° plus
+    the angle between them, in alternating directions: whole turns both ways at the stage's speed,
+    the rests at n distinct angles (the tilt and the encoder readings).
+    """
+    if n < 3:
+        raise InputError(f"a sweep needs at least 3 rests, got {n}")
+    angles = sorted((start_deg + k * 360.0 / n) % 360.0 for k in range(n))
+    order, lo, hi = [], 0, n - 1
+    while lo <= hi:
+        order.append(angles[lo] - 360.0)
+        lo += 1
+        if lo <= hi:
+            order.append(angles[hi])
+            hi -= 1
+    return order
 
 
 @dataclass(frozen=True)
@@ -163,27 +184,29 @@ class _Builder:
 def schedule(spec: PlanSpec, stage: Stage, dt_s: float = 0.1) -> Schedule:
     """The plan's time line (eq P1). positions: [settle, restart, dwell] at each of n equally
     spaced angles, moves of 360°/n between, then the return move and its settle; positions+motion:
-    the same, every sample used; sweep: settle, then n revolutions ±360° at rate_deg_s, each
-    followed by a settle at rest (encoder read; the CAN node streams throughout)."""
+    the same, every sample used; sweep: the same at the rests of `sweep_targets_deg`, whose moves
+    are 360° plus the step, every sample used."""
     b = _Builder(dt_s)
     v, a = stage.speed_deg_s, stage.accel_deg_s2
-    if spec.kind == "sweep":
-        b.hold(stage.settle_s, True)
-        for i in range(spec.n):
-            b.move(360.0 if i % 2 == 0 else -360.0, spec.rate_deg_s, a, True)
-            b.hold(stage.settle_s, True)
-        return b.build(sum(x.size for x in b.alpha) * dt_s)
-    motion = spec.kind == "positions+motion"
-    step = 360.0 / spec.n
+    targets = _targets(spec)
+    motion = spec.kind != "positions"
+    b.angle = targets[0]
     for i in range(spec.n):
         if i:
-            b.move(step, v, a, motion)
+            b.move(targets[i] - targets[i - 1], v, a, motion)
         b.hold(stage.settle_s + stage.restart_s, motion)
         b.hold(spec.dwell_s, True)
     if stage.return_to_start:
-        b.move(-step * (spec.n - 1), v, a, motion)
+        b.move(targets[0] - targets[-1], v, a, motion)
         b.hold(stage.settle_s, motion)
     return b.build(spec.n * spec.dwell_s)
+
+
+def _targets(spec: PlanSpec) -> list[float]:
+    """The stage targets of a plan: 360°/n steps (positions), the zig-zag of a sweep."""
+    if spec.kind == "sweep":
+        return sweep_targets_deg(spec.n)
+    return [k * 360.0 / spec.n for k in range(spec.n)]
 
 
 def _backward_ar1(p: np.ndarray, phi: float) -> np.ndarray:
@@ -271,11 +294,9 @@ class Prediction:
 
 def _grid_dt(spec: PlanSpec, stage: Stage) -> float:
     """A grid fine enough for the moves, at most ~6000 samples for long plans."""
-    rough = (
-        (spec.n * (spec.dwell_s + stage.settle_s + stage.restart_s) + 400.0)
-        if spec.kind != "sweep"
-        else (spec.n * (360.0 / max(spec.rate_deg_s, 1e-3) + stage.settle_s))
-    )
+    rough = spec.n * (spec.dwell_s + stage.settle_s + stage.restart_s) + 400.0
+    if spec.kind == "sweep":
+        rough += spec.n * 540.0 / stage.speed_deg_s
     return max(0.05, rough / 6000.0)
 
 
@@ -307,31 +328,29 @@ def predict(spec: PlanSpec, sensor: Sensor, latitude_deg: float, tilt_deg: float
     )  # fmt: skip
 
 
-def sweep_rate_for(elapsed_s: float, revolutions: int, stage: Stage) -> float:
-    """The sweep rate [deg/s] whose plan lasts elapsed_s (eq P1 solved for the rate): each
-    revolution takes P = (T − settle)/n − settle = 360/r + r/a, so r = a/2·(P − √(P² − 1440/a)).
-    0 when the revolutions cannot fit in elapsed_s at the stage's speed."""
-    per = (elapsed_s - stage.settle_s) / revolutions - stage.settle_s
-    a = stage.accel_deg_s2
-    disc = per * per - 4.0 * 360.0 / a
-    if per <= 0 or disc < 0:
-        return 0.0
-    rate = a / 2.0 * (per - math.sqrt(disc))
-    return rate if rate <= stage.speed_deg_s * (1.0 + 1e-9) else 0.0
-
-
 def positions_dwell_for(elapsed_s: float, n: int, stage: Stage) -> float:
     """The dwell [s] whose n-position plan lasts elapsed_s (eq P1 solved for the dwell); ≤ 0 when
     the moves and settles alone take longer."""
-    step = move_time_s(360.0 / n, stage)
-    fixed = n * (stage.settle_s + stage.restart_s) + (n - 1) * step
+    return _dwell_for(elapsed_s, [k * 360.0 / n for k in range(n)], stage)
+
+
+def sweep_dwell_for(elapsed_s: float, n: int, stage: Stage) -> float:
+    """The dwell [s] at each of a sweep's n rests whose plan lasts elapsed_s (≤ 0: the moves alone
+    take longer)."""
+    return _dwell_for(elapsed_s, sweep_targets_deg(n), stage)
+
+
+def _dwell_for(elapsed_s: float, targets: list[float], stage: Stage) -> float:
+    n = len(targets)
+    fixed = n * (stage.settle_s + stage.restart_s)
+    fixed += sum(move_time_s(b - a, stage) for a, b in zip(targets[:-1], targets[1:], strict=True))
     if stage.return_to_start:
-        fixed += move_time_s(360.0 * (n - 1) / n, stage) + stage.settle_s
+        fixed += move_time_s(targets[-1] - targets[0], stage) + stage.settle_s
     return (elapsed_s - fixed) / n
 
 
 POSITION_COUNTS = (4, 6, 8, 12, 16)
-SWEEP_REVOLUTIONS = (2, 4, 8, 16, 32, 64)
+SWEEP_RESTS = (3, 4, 6, 8, 12, 16)
 TIE = 0.02
 """Relative margin within which plans count as equally fast (or equally good)."""
 
@@ -348,8 +367,8 @@ class PlanChoice:
 
 def _spec_for(kind: str, n: int, elapsed_s: float, stage: Stage) -> PlanSpec | None:
     if kind == "sweep":
-        r = sweep_rate_for(elapsed_s, n, stage)
-        return PlanSpec(kind, n, rate_deg_s=r, order="alternating") if r > 0.05 else None
+        d = sweep_dwell_for(elapsed_s, n, stage)
+        return PlanSpec(kind, n, dwell_s=d, order="zigzag") if d >= 0.5 else None
     d = positions_dwell_for(elapsed_s, n, stage)
     return PlanSpec(kind, n, dwell_s=d) if d >= 0.5 else None
 
@@ -414,7 +433,7 @@ def choose_plan(
             "stop-and-go only: without a z gyro the table angle is known only at rest (the encoder is "
             "read when the stage stops), so samples taken while it turns cannot be placed"
         )
-    counts = {"sweep": SWEEP_REVOLUTIONS}
+    counts = {"sweep": SWEEP_RESTS}
     alts: list[Prediction] = []
     for kind in kinds:
         for n in counts.get(kind, POSITION_COUNTS):

@@ -83,6 +83,9 @@ class FindRequest:
     time_budget: float | None = None
 
 
+MOTION_PLANS = ("positions+motion", "sweep")
+"""Plans whose result is the per-sample fit (find_motion) when it is available."""
+
 def check_request(req: FindRequest) -> None:
     """The flags' own ranges, before anything is opened or written (messages name the flag)."""
     if req.positions is not None and req.positions < 3:
@@ -553,14 +556,14 @@ def compute_result(
     the tilt, the per-position data, the error against the truth for a simulated run, and what
     went wrong on the way (`faults`, from :func:`faults_summary` of the events log).
 
-    plan "positions+motion" with `motion` (the dwells' solution → find_motion.motion_fit_result):
+    plan "positions+motion" or "sweep" with `motion` (the dwells' solution → find_motion.motion_fit_result):
     the heading and its 1σ come from the per-sample fit when it is available; the dwells' own
     heading stays in `dwell_fit` (and is the result, with the reason, when it is not)."""
     if len(positions) < 3:
         raise InputError(f"only {len(positions)} positions measured; a heading needs at least 3")
     sol = _solve(positions, latitude_deg, method, height_m)
     heading_deg, heading_std_deg, headings = sol.heading_deg, sol.heading_std_deg, sol.methods
-    motion_info = motion(sol) if (plan == "positions+motion" and motion is not None) else None
+    motion_info = motion(sol) if (plan in MOTION_PLANS and motion is not None) else None
     if motion_info is not None and motion_info["available"]:
         heading_deg, heading_std_deg = motion_info["heading_deg"], motion_info["heading_std_deg"]
         headings = motion_info["methods"]
