@@ -11,6 +11,9 @@ and σ over the white-noise limit of the elapsed time (the IMU stream from the f
 to the last dwell's end, and from the first dwell's start to the end of the return and its settle).
 Part 2: `--runs` finds with `--target-std`: the plan the model chose, its predicted σ and elapsed
 time against what the runs reported.
+Part 3: `--runs` sweeps (`find --simulate --plan sweep`, `--sweep-rests` rests) whose dwell the plan
+model solves so that the sweep lasts as long as part 1's 8 × 20 s (the same elapsed device time):
+the same figures as part 1.
 Every run is a real subprocess simulator on ptys and python-can's slcan client (as `find --simulate`).
 """
 
@@ -92,6 +95,35 @@ def part1(args, tmp: Path) -> None:
     summarize("positions+motion", a[:, 2], a[:, 3], a[:, 4], a[:, 5])
 
 
+def part3(args, tmp: Path) -> None:
+    from northfinder.estimators import plan as P
+
+    elapsed = P.predict(P.PlanSpec("positions", 8, 20.0), GRADES[args.grade], args.latitude, 2.0,
+                        P.Stage()).elapsed_s
+    dwell = round(P.sweep_dwell_for(elapsed, args.sweep_rests, P.Stage()), 1)
+    rows = []
+    for k in range(args.runs):
+        extra = ["--grade", args.grade, "--latitude", str(args.latitude), "--plan", "sweep",
+                 "--positions", str(args.sweep_rests), "--dwell", str(dwell)]
+        r = find(tmp / f"sweep{k}", args.seed0 + k, extra)
+        m = r["motion_fit"]
+        assert m["available"], m
+        tilt = r["truth"]["pitch_deg"], r["truth"]["roll_deg"]
+        tilt_deg = math.degrees(math.acos(math.cos(math.radians(tilt[0])) * math.cos(math.radians(tilt[1]))))
+        span = m["samples"]["fit_span_device_s"]
+        stream = stream_s(tmp / f"sweep{k}") - m["samples"]["before_first_dwell_s"]
+        rows.append((r["error_deg"], r["heading_std_deg"],
+                     limit_deg(args.grade, span, args.latitude, tilt_deg),
+                     limit_deg(args.grade, stream, args.latitude, tilt_deg)))
+        print(f"seed {args.seed0 + k}: sweep {args.sweep_rests} rests × {dwell:g} s: {r['error_deg']:+.4f} ± "
+              f"{r['heading_std_deg']:.4f}°, span {span:.1f} s, stream {stream:.1f} s, "
+              f"misalignment {m['misalignment_dph_per_dps']}", flush=True)
+    a = np.array(rows)
+    print(f"\n{args.runs} sweeps, {args.grade}, {args.latitude}° N, {args.sweep_rests} rests × {dwell:g} s "
+          f"(planned to last {elapsed:.0f} s like 8 × 20 s):")
+    summarize("sweep", a[:, 0], a[:, 1], a[:, 2], a[:, 3])
+
+
 def part2(args, tmp: Path) -> None:
     rows = []
     for k in range(args.runs):
@@ -118,13 +150,16 @@ def main() -> None:
     ap.add_argument("--grade", default="nav")
     ap.add_argument("--latitude", type=float, default=40.0)
     ap.add_argument("--target-std", type=float, default=0.05)
-    ap.add_argument("--part", choices=("1", "2", "both"), default="both")
+    ap.add_argument("--sweep-rests", type=int, default=4)
+    ap.add_argument("--part", choices=("1", "2", "3", "both", "all"), default="all")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as d:
-        if args.part in ("1", "both"):
+        if args.part in ("1", "both", "all"):
             part1(args, Path(d))
-        if args.part in ("2", "both"):
+        if args.part in ("2", "both", "all"):
             part2(args, Path(d))
+        if args.part in ("3", "all"):
+            part3(args, Path(d))
 
 
 if __name__ == "__main__":
