@@ -68,8 +68,16 @@ def test_simulated_300_s_alignment_is_within_3_sigma_of_the_truth(e2e_run):
         f"{result['methods']['coarse']['error_deg']:+.3f}°; {proc.stderr.splitlines()[-1]}"
     )
     assert result["kind"] == sr.KIND and result["complete"] is True and result["method"] == "cone"
-    assert result["duration_device_s"] == 300.0
-    assert result["imu"]["lost_samples"] == 0 and result["imu"]["stats"]["bad_crc"] == 0
+    # No fault is injected; a host loaded enough to overrun the IMU line (1000 Hz at 40×: 1.4 MB/s)
+    # loses bytes, and the window is then cut before the first gap whose length the 7-bit sequence
+    # cannot tell (runs.base.before_unknown_gap); every bound below holds for the part kept.
+    cut = result.get("imu_unknown_gap")
+    if cut is None:
+        assert result["duration_device_s"] == 300.0
+        assert result["imu"]["lost_samples"] == 0 and result["imu"]["stats"]["bad_crc"] == 0
+    else:
+        assert cut["unknown_gaps"] >= 1 and result["imu"]["stats"]["unknown_gaps"] >= 1
+        assert result["duration_device_s"] == pytest.approx(cut["kept_s"], abs=1e-9)
     assert 0.0 < result["heading_std_deg"] < 1.0
     assert abs(result["error_deg"]) <= 3.0 * result["heading_std_deg"]
     tr = result["truth"]
@@ -85,7 +93,8 @@ def test_simulated_300_s_alignment_is_within_3_sigma_of_the_truth(e2e_run):
     assert coarse["heading_std_deg"] is None and coarse["base_still"] is False
     assert any("bias floor" in c for c in result["sigma_covers"]["covers"])
     assert result["diagnostics"]["heading_std_parts_deg"]["bias_prior"] > 0.0
-    assert (run_dir / "imu.raw").stat().st_size >= 36 * 300_000
+    if cut is None:  # an overrun loses bytes, so the raw log is shorter then
+        assert (run_dir / "imu.raw").stat().st_size >= 36 * 300_000
     assert (run_dir / "report.png").stat().st_size > 0
     assert json.loads((run_dir / RESULT).read_text()) == result
 

@@ -70,21 +70,28 @@ def summarize(name: str, err: np.ndarray, std: np.ndarray, lim_span: np.ndarray,
           f"σ/limit: fit span {np.mean(std / lim_span):.3f}, with the return {np.mean(std / lim_stream):.3f}")
 
 
+def spans(args, r: dict, run_dir: Path) -> tuple[float, float, float, float]:
+    """(fit span s, span with the return s, and the limit of each) of a run with its motion fit."""
+    m = r["motion_fit"]
+    assert m["available"], m
+    tilt = r["truth"]["pitch_deg"], r["truth"]["roll_deg"]
+    tilt_deg = math.degrees(math.acos(math.cos(math.radians(tilt[0])) * math.cos(math.radians(tilt[1]))))
+    span = m["samples"]["fit_span_device_s"]
+    stream = stream_s(run_dir) - m["samples"]["before_first_dwell_s"]  # + the return
+    return (span, stream, limit_deg(args.grade, span, args.latitude, tilt_deg),
+            limit_deg(args.grade, stream, args.latitude, tilt_deg))
+
+
 def part1(args, tmp: Path) -> None:
     rows = []
     for k in range(args.runs):
         site = ["--grade", args.grade, "--latitude", str(args.latitude)]
         r = find(tmp / f"defaults{k}", args.seed0 + k, site)
         m = r["motion_fit"]
-        assert m["available"], m
-        tilt = r["truth"]["pitch_deg"], r["truth"]["roll_deg"]
-        tilt_deg = math.degrees(math.acos(math.cos(math.radians(tilt[0])) * math.cos(math.radians(tilt[1]))))
-        span = m["samples"]["fit_span_device_s"]
-        stream = stream_s(tmp / f"defaults{k}") - m["samples"]["before_first_dwell_s"]  # + the return
+        span, stream, lim_span, lim_stream = spans(args, r, tmp / f"defaults{k}")
         dwell_err = (r["dwell_fit"]["heading_deg"] - r["truth"]["heading_deg"] + 180) % 360 - 180
         rows.append((dwell_err, r["dwell_fit"]["heading_std_deg"], r["error_deg"], r["heading_std_deg"],
-                     limit_deg(args.grade, span, args.latitude, tilt_deg),
-                     limit_deg(args.grade, stream, args.latitude, tilt_deg), span, stream))
+                     lim_span, lim_stream, span, stream))
         print(f"seed {args.seed0 + k}: dwells {dwell_err:+.4f} ± {rows[-1][1]:.4f}°, every sample "
               f"{r['error_deg']:+.4f} ± {r['heading_std_deg']:.4f}°, span {span:.1f} s, "
               f"stream {stream:.1f} s, "
@@ -107,14 +114,8 @@ def part3(args, tmp: Path) -> None:
                  "--positions", str(args.sweep_rests), "--dwell", str(dwell)]
         r = find(tmp / f"sweep{k}", args.seed0 + k, extra)
         m = r["motion_fit"]
-        assert m["available"], m
-        tilt = r["truth"]["pitch_deg"], r["truth"]["roll_deg"]
-        tilt_deg = math.degrees(math.acos(math.cos(math.radians(tilt[0])) * math.cos(math.radians(tilt[1]))))
-        span = m["samples"]["fit_span_device_s"]
-        stream = stream_s(tmp / f"sweep{k}") - m["samples"]["before_first_dwell_s"]
-        rows.append((r["error_deg"], r["heading_std_deg"],
-                     limit_deg(args.grade, span, args.latitude, tilt_deg),
-                     limit_deg(args.grade, stream, args.latitude, tilt_deg)))
+        span, stream, lim_span, lim_stream = spans(args, r, tmp / f"sweep{k}")
+        rows.append((r["error_deg"], r["heading_std_deg"], lim_span, lim_stream))
         print(f"seed {args.seed0 + k}: sweep {args.sweep_rests} rests × {dwell:g} s: {r['error_deg']:+.4f} ± "
               f"{r['heading_std_deg']:.4f}°, span {span:.1f} s, stream {stream:.1f} s, "
               f"misalignment {m['misalignment_dph_per_dps']}", flush=True)
