@@ -20,11 +20,12 @@ from northfinder.align.limits import latitude_problem
 from northfinder.align.swaying import METHODS as SWAYING_METHODS
 from northfinder.errors import ConfigError
 from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG
+from northfinder.estimators.plan import KINDS as PLAN_KINDS
 
 METHODS = ("exact", "vector", "coordinate_transform", "uncompensated", "eq11")
 ORDERS = ("sequential", "alternating")
-RUN_PLANS = ("positions", "positions+motion", "sweep")
-"""Kinds of turntable run `find` carries out, as northfinder.estimators.plan.KINDS models them: the
+RUN_PLANS = PLAN_KINDS
+"""Kinds of turntable run `find` carries out, the ones northfinder.estimators.plan models: the
 dwells only, every sample of the same stop-and-go schedule, or a sweep (rests at distinct angles
 reached the long way round, whole turns in alternating directions; plan.sweep_targets_deg)."""
 IMU_RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)

@@ -196,6 +196,10 @@ def test_bad_nmea_is_counted_and_skipped_and_ctrl_c_keeps_the_data_and_exits_130
         (["--simulate", "--heading-error", "10", "--heading-std", "0"], "--heading-std 0"),
         (["--config", "bench.toml", "--heading-std", "5"], "--heading-std needs a heading"),
         (["--config", "bench.toml", "--heading", "10", "--initial-heading", "20"], "--initial-heading"),
+        (["--simulate", "--link-latency", "abc"], "--link-latency abc"),
+        (["--simulate", "--link-latency", "10,20"], "--link-latency 10,20: the latency must be"),
+        (["--simulate", "--link-latency", "cpu=10:1"], "name the link imu or gnss"),
+        (["--config", "bench.toml", "--link-latency", "150,20"], "--link-latency is for --simulate"),
     ],
 )
 def test_flag_mistakes_are_one_line(argv, needle, tmp_path, capsys, monkeypatch):

@@ -15,12 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import only_line
 
 from firmware_sim.link import LinkShaper, LinkSpec
 from firmware_sim.physics.vehicle import VehicleTrajectory, simulate_drive
 from northfinder.align.time_offset import NoTimeInformation, estimate_time_offset
-from northfinder.cli import main
 from northfinder.runs.gnss_live import VehicleSim
 
 G_M_S2 = 9.80665
@@ -147,20 +145,3 @@ def test_vehicle_sim_passes_the_link_latency_to_firmware_sim():
     argv = VehicleSim(link_latency="150,20").argv()
     assert argv[argv.index("--link-latency") + 1] == "150,20"
     assert "--link-latency" not in VehicleSim().argv()
-
-
-@pytest.mark.parametrize(
-    ("argv", "needle"),
-    [
-        (["--simulate", "--link-latency", "abc"], "--link-latency abc"),
-        (["--simulate", "--link-latency", "10,20"], "--link-latency 10,20: the latency must be"),
-        (["--simulate", "--link-latency", "cpu=10:1"], "name the link imu or gnss"),
-        (["--config", "bench.toml", "--link-latency", "150,20"], "--link-latency is for --simulate"),
-    ],
-)
-def test_link_latency_mistakes_are_one_line(argv, needle, tmp_path, capsys, monkeypatch):
-    monkeypatch.chdir(tmp_path)
-    rc = main(["align", "--mode", "gnss", *argv, "--out", str(tmp_path / "run")])
-    _, err = capsys.readouterr()
-    assert rc == 2
-    assert needle in only_line(err)

@@ -40,6 +40,7 @@ from northfinder.align.strapdown import (
     Strapdown,
     cross3,
     earth_rate_n,
+    fill_lost_samples,
     increments_from_rates,
     skew3,
     transport_rate_n,
@@ -91,9 +92,7 @@ class ImuSeries:
         idx = self._relative_index()
         if idx is None:
             return dth, dv
-        dense = np.arange(idx[-1] + 1)
-        return (np.column_stack([np.interp(dense, idx, dth[:, i]) for i in range(3)]),
-                np.column_stack([np.interp(dense, idx, dv[:, i]) for i in range(3)]))
+        return fill_lost_samples(idx, dth), fill_lost_samples(idx, dv)
 
     def gap_variance(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Variance [rad², (m/s)²] per dense sample and axis that the gap filling leaves in Δθ, Δv

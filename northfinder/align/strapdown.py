@@ -117,6 +117,16 @@ def orthonormalize(c: np.ndarray) -> np.ndarray:
     return r
 
 
+def fill_lost_samples(sample_index, values) -> np.ndarray:
+    """`values` [n, k] at strictly increasing device indices → one row per index from the first to
+    the last, each lost sample linearly interpolated between its neighbours (every align estimator
+    fills a line's lost samples this way; how much it trusts the filling is its own business)."""
+    idx = np.asarray(sample_index, dtype=np.int64)
+    v = np.asarray(values, dtype=float)
+    dense = np.arange(idx[0], idx[-1] + 1)
+    return np.column_stack([np.interp(dense, idx, v[:, i]) for i in range(v.shape[1])])
+
+
 def increments_from_rates(gyro_rad_s, accel_g, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
     """Δθ [rad] and Δv [m/s] per sample from rate-format IMU output (rate × dt, accel in g × g0 × dt).
 

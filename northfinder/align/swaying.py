@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from northfinder.align.limits import LATITUDE_ADVICE, latitude_problem
+from northfinder.align.strapdown import fill_lost_samples
 from northfinder.constants import (
     DEG,
     DPH,
@@ -625,10 +626,8 @@ def _fill_gaps(sample_index: np.ndarray, rate: np.ndarray, accel_g: np.ndarray, 
         raise InputError(f"the IMU lost {int(steps.max() - 1)} consecutive samples inside the window: the "
                          f"attitude cannot be integrated across a gap longer than {max_gap} samples — "
                          "record again (check the serial link)")
-    full = np.arange(sample_index[0], sample_index[-1] + 1)
-    out_r = np.stack([np.interp(full, sample_index, rate[:, i]) for i in range(3)], axis=1)
-    out_a = np.stack([np.interp(full, sample_index, accel_g[:, i]) for i in range(3)], axis=1)
-    return out_r, out_a, int(full.size - sample_index.size)
+    out_r, out_a = fill_lost_samples(sample_index, rate), fill_lost_samples(sample_index, accel_g)
+    return out_r, out_a, int(out_r.shape[0] - sample_index.size)
 
 
 def _block_skew(f_win: np.ndarray) -> np.ndarray:

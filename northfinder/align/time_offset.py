@@ -41,6 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from northfinder.align.strapdown import fill_lost_samples
 from northfinder.constants import OMEGA_EARTH_RAD_S
 
 MIN_SPEED_M_S = 3.0
@@ -123,8 +124,7 @@ def _imu_signals(gyro_rad_s, accel_g, sample_index, rate_hz: float, latitude_deg
     acc = np.asarray(accel_g, float)
     idx = np.arange(len(gyro)) if sample_index is None else np.asarray(sample_index, np.int64)
     rel = idx - idx[0]
-    dense = np.arange(rel[-1] + 1)
-    gyro = np.column_stack([np.interp(dense, rel, gyro[:, i]) for i in range(3)])
+    gyro = fill_lost_samples(idx, gyro)
     n_level = max(1, min(len(acc), int(round(LEVEL_S * rate_hz))))
     up = acc[:n_level].mean(axis=0)
     up = up / np.linalg.norm(up)

@@ -241,11 +241,11 @@ class Imu(StreamReader):
                 got += k
             self._pending_n -= n
             rate, fmt, units = self.rate_hz, self.rot_format, self.rot_units
-            unknown = list(self._decoder.unknown_gap_indices)
+            first, last = int(taken[0][0][0]), int(taken[-1][0][-1])
+            gaps = tuple(k for k in self._decoder.unknown_gap_indices if first <= k <= last)
         index = np.concatenate([c[0] for c in taken])
         frames = np.concatenate([c[1] for c in taken])
         block = frames_to_block(index, frames, rate, fmt, units)
-        gaps = tuple(k for k in unknown if index[0] <= k <= index[-1])
         return replace(block, unknown_gaps=gaps) if gaps else block
 
     def discard_pending(self) -> int:

@@ -29,6 +29,8 @@ from northfinder.estimators.limits import noise_limit_heading_std_deg
 from northfinder.estimators.motion_fit import RUN_TERMS, motion_design
 
 KINDS = ("positions", "positions+motion", "sweep")
+MOTION_KINDS = ("positions+motion", "sweep")
+"""The kinds that fit every sample (the per-sample fit, motion_fit): they need a z gyro."""
 GYRO_AXES = ("xyz", "xy", "y")
 EARTH_RATE_DPH = OMEGA_EARTH_RAD_S * 180.0 / math.pi * 3600.0
 
@@ -415,17 +417,15 @@ def choose_plan(
     target_std_deg: float | None = None,
     time_budget_s: float | None = None,
     max_time_s: float = 6.0 * 3600.0,
-    kinds: tuple[str, ...] = KINDS,
 ) -> PlanChoice:
     """The plan that reaches target_std_deg soonest, or the smallest σ within time_budget_s (eq P5).
 
     Kinds with motion samples need a z gyro (gyro_axes "xyz"); without one they are left out
-    and `notes` says why. `kinds`: the kinds to consider (find runs positions and
-    positions+motion). Raises InputError when no plan reaches the target within max_time_s.
+    and `notes` says why. Raises InputError when no plan reaches the target within max_time_s.
     """
     if (target_std_deg is None) == (time_budget_s is None):
         raise InputError("give either a target σ or a time budget (not both)")
-    kinds = [k for k in KINDS if k in kinds]
+    kinds = list(KINDS)
     notes = []
     if sensor.gyro_axes != "xyz":
         kinds = ["positions"]

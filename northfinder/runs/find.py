@@ -31,6 +31,7 @@ from northfinder.constants import wrap_deg_180
 from northfinder.errors import InputError, RunAborted, RunDamaged
 from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG, HeadingSolution
 from northfinder.estimators.means import PositionMeans, position_means
+from northfinder.estimators.plan import MOTION_KINDS
 from northfinder.history import record_or_warn
 from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session_file
 from northfinder.runs.base import ProgressView, RunContext, default_out, guard, now_utc
@@ -82,9 +83,6 @@ class FindRequest:
     target_std: float | None = None
     time_budget: float | None = None
 
-
-MOTION_PLANS = ("positions+motion", "sweep")
-"""Plans whose result is the per-sample fit (find_motion) when it is available."""
 
 def check_request(req: FindRequest) -> None:
     """The flags' own ranges, before anything is opened or written (messages name the flag)."""
@@ -563,7 +561,7 @@ def compute_result(
         raise InputError(f"only {len(positions)} positions measured; a heading needs at least 3")
     sol = _solve(positions, latitude_deg, method, height_m)
     heading_deg, heading_std_deg, headings = sol.heading_deg, sol.heading_std_deg, sol.methods
-    motion_info = motion(sol) if (plan in MOTION_PLANS and motion is not None) else None
+    motion_info = motion(sol) if (plan in MOTION_KINDS and motion is not None) else None
     if motion_info is not None and motion_info["available"]:
         heading_deg, heading_std_deg = motion_info["heading_deg"], motion_info["heading_std_deg"]
         headings = motion_info["methods"]

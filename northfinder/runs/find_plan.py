@@ -16,7 +16,6 @@ from northfinder import config as bench
 from northfinder.errors import InputError
 from northfinder.estimators import plan as model
 
-RUNNABLE_KINDS = bench.RUN_PLANS
 PLAN_TILT_DEG = 2.0
 """Tilt bound the plan is made for (as `northfinder plan`'s default): the worst case of a bench
 levelled to 2°."""
@@ -44,7 +43,7 @@ def choose_for_run(cfg: bench.BenchConfig, grade: str | None, target_std_deg: fl
     sensor = sensor_for(grade)
     choice = model.choose_plan(
         sensor, cfg.site.latitude_deg, PLAN_TILT_DEG, stage_for(cfg),
-        target_std_deg=target_std_deg, time_budget_s=time_budget_s, kinds=RUNNABLE_KINDS,
+        target_std_deg=target_std_deg, time_budget_s=time_budget_s,
     )  # fmt: skip
     best = choice.best
     cfg.run.positions = int(best.spec.n)

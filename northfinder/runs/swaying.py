@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from northfinder.align.coarse import coarse_align
+from northfinder.align.strapdown import fill_lost_samples
 from northfinder.align.swaying import (
     KVH_GYRO_RANGE_DPS,
     METHODS,
@@ -461,9 +462,8 @@ def cone_residuals(block: Any, sol: Any, max_sway_period_s: float) -> dict[str, 
     """
     rate = float(block.rate_hz)
     dt = 1.0 / rate
-    full = np.arange(block.sample_index[0], block.sample_index[-1] + 1)
-    gyro = np.stack([np.interp(full, block.sample_index, block.gyro_rad_s[:, i]) for i in range(3)], axis=1)
-    acc = np.stack([np.interp(full, block.sample_index, block.accel_g[:, i]) for i in range(3)], axis=1)
+    gyro = fill_lost_samples(block.sample_index, block.gyro_rad_s)
+    acc = fill_lost_samples(block.sample_index, block.accel_g)
     dtheta = gyro * dt
     dv = acc * (STANDARD_GRAVITY_M_S2 * dt)
     q = attitude_quaternions(dtheta)
@@ -477,7 +477,7 @@ def cone_residuals(block: Any, sol: Any, max_sway_period_s: float) -> dict[str, 
     # one dot product per window (tens of windows), not per sample
     f = np.array([h @ dv_ib0[s0 : s0 + lw] for s0 in starts]) / dt
     t_c = (starts + lw / 2.0) * dt
-    t_end = full.size * dt
+    t_end = gyro.shape[0] * dt
     axis = np.asarray(sol.earth_axis_ib0, dtype=float)
     u_end = quat_to_dcm(q[-1]) @ np.asarray(sol.c_b_n)[2]  # C_b^{i_b0}(t_end)·(up in b)
     ang = -OMEGA_EARTH_RAD_S * (t_end - t_c)[:, None]
