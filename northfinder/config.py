@@ -151,8 +151,8 @@ class RunConfig:
     order: str = "sequential"
     plan: str = "positions+motion"
     """"positions": the dwell means only; "positions+motion": every gyro sample from the first dwell
-    to the last, each at its own table angle (needs a z gyro; otherwise the dwells, and the result
-    says why) — docs/estimators.md §10."""
+    to the rest after the return (or the last dwell), each at its own table angle (needs a z gyro;
+    otherwise the dwells, and the result says why) — docs/estimators.md §10."""
     start_deg: float = 0.0
     settle_window_s: float = 0.2
     """Length of one settle window of gyro-z samples [device s]."""

@@ -28,7 +28,7 @@ from northfinder.constants import DPH
 from northfinder.drivers.turntable import StageError
 from northfinder.errors import ConfigError, DeviceError, NorthfinderError
 from northfinder.estimators.means import PositionMeans, position_means
-from northfinder.estimators.plan import sweep_targets_deg
+from northfinder.estimators.plan import MOTION_KINDS, sweep_targets_deg
 from northfinder.stopflag import StopFlag
 
 log = logging.getLogger(__name__)
@@ -146,6 +146,32 @@ class SettleResult:
     settle_s: float
     settled: bool
     windows: int
+    after_motion_s: float | None = None
+    """Device time from the start of the last gyro-z window still turning to the end of the settle
+    (None when no motion was seen): how much of the rest after READY the settle took, at most."""
+
+    @property
+    def rest_before_dwell_s(self) -> float:
+        """Device time a stream started at READY must drop before the dwell: the settle after the
+        motion when it was seen (READY comes after the planned move ends), else the whole settle."""
+        return self.settle_s if self.after_motion_s is None else min(self.settle_s, self.after_motion_s)
+
+
+SLEWING_FRACTION = 0.1
+"""A settle window whose mean gyro z is at least this fraction of the fastest window's is part of
+the move itself: a stop's ringing averages out over a window, a slew (or its ramps) does not."""
+
+
+def after_motion_s(window_means_dph: list[float], window_s: float, margin_s: float) -> float | None:
+    """Device time from the START of the last window still slewing to the end of the last window
+    (plus the margin dropped after the settle); None when no window turned. That window holds some
+    of the planned move, so the move ended after it began: a stream started at READY that skips
+    this much starts at or after the settle's end (at most two windows later)."""
+    means = np.abs(np.asarray(window_means_dph, dtype=float))
+    if means.size == 0 or not np.any(means > 0):
+        return None
+    last_slewing = int(np.nonzero(means >= SLEWING_FRACTION * means.max())[0][-1])
+    return (means.size - last_slewing) * window_s + margin_s
 
 
 def settle_reached(z_windows_dph: list[np.ndarray], ratio: float, rest_dph: float) -> bool:
@@ -441,11 +467,13 @@ class Sequencer:
         max_windows = max(1, int(np.ceil((cfg.settle_max_s + move_s) * rate / n_win)))
         min_windows = int(np.ceil(cfg.settle_min_s * rate / n_win))
         self._align_to_grid(n_win)
+        means_dph: list[float] = []
         if expect_motion:
             for _ in range(int(np.ceil(2.0 * move_s * rate / n_win))):
                 self._check_stop()
                 z = np.asarray(self._read_imu(n_win).gyro_rad_s)[:, 2] / DPH
                 if abs(float(np.nanmean(z))) > cfg.settle_rest_dph:
+                    means_dph.append(float(np.nanmean(z)))
                     break
             else:
                 raise DeviceError(
@@ -459,9 +487,13 @@ class Sequencer:
             self._check_stop()
             z = np.asarray(self._read_imu(n_win).gyro_rad_s)[:, 2] / DPH
             windows.append(z[np.isfinite(z)])
+            means_dph.append(float(np.mean(windows[-1])) if windows[-1].size else 0.0)
             if k >= min_windows and settle_reached(windows[-2:], cfg.settle_ratio, cfg.settle_rest_dph):
-                return SettleResult(k * n_win / rate + self._settle_margin(rate), True, k)
-        return SettleResult(max_windows * n_win / rate, False, max_windows)
+                margin_s = self._settle_margin(rate)
+                rest_s = after_motion_s(means_dph, n_win / rate, margin_s) if expect_motion else None
+                return SettleResult(k * n_win / rate + margin_s, True, k, rest_s)
+        rest_s = after_motion_s(means_dph, n_win / rate, 0.0) if expect_motion else None
+        return SettleResult(max_windows * n_win / rate, False, max_windows, rest_s)
 
     def _settle_margin(self, rate: float) -> float:
         """Drop settle_margin_s of samples after the settle criterion; returns that time [s]."""
@@ -509,12 +541,12 @@ class Sequencer:
     def dwell(self, index: int, target_deg: float, settle_s: float = 0.0) -> tuple[list[Any], Any]:
         """Collect dwell_s·rate IMU samples right after settling (in chunks, reporting live
         statistics), then dwell_s·rate accelerometer samples: those after its NMT start at READY,
-        less the first settle_s·rate of them.
+        less the first settle_s·rate of them (`SettleResult.rest_before_dwell_s`).
 
         The two dwells need not coincide: both lie inside the same rest (the accelerometer was
-        started at or after READY in device time, READY + settle_s is at or after the settle the
-        IMU showed, and the next move is commanded only after both dwells have arrived), so a CAN
-        link that lags, or loses frames, shifts nothing."""
+        started at or after READY, which is after the last window the IMU saw slewing, and settle_s
+        covers the IMU's settle from there; the next move is commanded only after both dwells have
+        arrived), so a CAN link that lags, or loses frames, shifts nothing."""
         cfg = self.run_cfg
         rate = float(self.imu.rate_hz)
         n_total = max(2, int(round(cfg.dwell_s * rate)))
@@ -586,9 +618,33 @@ class Sequencer:
         self.accel.stop_node()
         if self.run_cfg.return_to_start:
             self.on_progress(Progress(n, n, "return", self._plan[0]))
-            self._move(self._plan[0])
+            self._return_to_start()
         self._event({"event": "end", "complete": True, "positions_measured": len(self.positions)})
         return list(self.positions)
+
+    def _return_to_start(self) -> None:
+        """The move back to the first position. A plan that fits every sample (MOTION_KINDS) with a
+        gyro z then settles and reads the encoder at rest once more (a `returned` event with the IMU
+        indices of a short rest): the return's samples are then pinned at both ends and join the fit,
+        so the time the return takes is not lost to it."""
+        target = self._plan[0]
+        pin = self.run_cfg.plan in MOTION_KINDS and self._has_gyro_z()
+        here = float(self.turntable.position_deg()) if pin else target
+        if pin:
+            self.imu.discard_pending()  # what is left is from before the move command
+        self._move(target)
+        if not pin:
+            return
+        travel_deg = abs(target - here)
+        settle = self.settle(expect_motion=travel_deg >= MIN_VISIBLE_MOVE_DEG, move_deg=travel_deg)
+        rest = self._read_imu(max(2, int(round(self.run_cfg.settle_window_s * float(self.imu.rate_hz)))))
+        idx = np.asarray(rest.sample_index)
+        self._event({
+            "event": "returned", "commanded_deg": target,
+            "table_angle_deg": float(self.turntable.position_deg()),
+            "settle": {"settle_s": settle.settle_s, "settled": settle.settled, "windows": settle.windows},
+            "imu": {"first_index": int(idx[0]), "last_index": int(idx[-1]), "samples": int(idx.size)},
+        })
 
     def _measure_position(self, i: int, target: float) -> PositionMeans:
         """Move, settle and dwell; measure again (up to max_attempts) when the IMU or the
@@ -612,7 +668,7 @@ class Sequencer:
                 settle = self.settle(expect_motion=travel_deg >= MIN_VISIBLE_MOVE_DEG, move_deg=travel_deg)
                 self._homing_travel_deg = 0.0
                 hb0, emcy0 = self._accel_counts()
-                blocks, accel_block = self.dwell(i, target, settle.settle_s)
+                blocks, accel_block = self.dwell(i, target, settle.rest_before_dwell_s)
                 hb1, emcy1 = self._accel_counts()
             except StageError:
                 raise  # _move already retried once
@@ -795,7 +851,8 @@ class Sequencer:
                 "index": i,
                 "commanded_deg": target,
                 "table_angle_deg": angle_deg,
-                "settle": {"settle_s": settle.settle_s, "settled": settle.settled, "windows": settle.windows},
+                "settle": {"settle_s": settle.settle_s, "settled": settle.settled, "windows": settle.windows,
+                           "after_motion_s": settle.after_motion_s},
                 "imu": {
                     "first_index": int(idx[0]),
                     "last_index": int(idx[-1]),

@@ -43,14 +43,24 @@ def _monte_carlo_sigma(spec: P.PlanSpec, sensor: P.Sensor, trials: int, seed: in
     return float(np.std(e, ddof=1))
 
 
-def test_time_model_reproduces_todays_find():
-    """Issue 13: 8 × 20 s is 160 s of dwell in about 256 s of device time, σ ≈ 1.27 × the limit of
-    the elapsed time. The white part of the prediction is √(elapsed/dwell) × that limit."""
-    p = P.predict(P.PlanSpec("positions", 8, 20.0), P.GRADES["nav"], LAT, 0.0, STAGE)
-    assert 250.0 < p.elapsed_s < 260.0
+def test_time_model_accounts_for_every_second_of_the_find():
+    """8 × 20 s positions: between two dwells a turnaround, a 45° move and a settle (7.0 s with
+    firmware_sim's stage: `find --simulate` spans 209 s from its first dwell's start to its last
+    dwell's end); the elapsed time adds the first settle and the return (turnaround, 315° back,
+    settle), which a motion plan fits too. The white part of the prediction is √(elapsed/dwell) ×
+    the limit of the elapsed time."""
+    spec = P.PlanSpec("positions", 8, 20.0)
+    p = P.predict(spec, P.GRADES["nav"], LAT, 0.0, STAGE)
+    fine = P.schedule(spec, STAGE, 0.01)
+    between_s = STAGE.turnaround_s + P.move_time_s(45.0, STAGE) + STAGE.settle_s
+    back_s = STAGE.turnaround_s + P.move_time_s(315.0, STAGE) + STAGE.settle_s
+    assert fine.elapsed_s == pytest.approx(STAGE.settle_s + 160.0 + 7 * between_s + back_s, abs=0.05)
+    assert p.elapsed_s == pytest.approx(fine.elapsed_s, rel=0.01)
     assert p.used_s == pytest.approx(160.0, abs=0.5)
     assert p.white_deg / p.limit_deg == pytest.approx(math.sqrt(p.elapsed_s / p.used_s), rel=0.01)
     assert P.move_time_s(45.0, STAGE) == pytest.approx(2.5)  # 45/20 + 20/80
+    motion = P.schedule(P.PlanSpec("positions+motion", 8, 20.0), STAGE, 0.01)
+    assert motion.used_s == pytest.approx(fine.elapsed_s - STAGE.settle_s, abs=0.1)  # but the first settle
 
 
 def test_the_solvers_give_plans_of_the_asked_length():

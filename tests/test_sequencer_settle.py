@@ -7,7 +7,7 @@ import pytest
 
 from northfinder.config import RunConfig
 from northfinder.estimators.means import position_means
-from northfinder.sequencer import settle_reached
+from northfinder.sequencer import after_motion_s, settle_reached
 
 RATE_HZ = 1000.0
 WINDOW = 200  # 0.2 s
@@ -63,3 +63,29 @@ def test_position_means_do_not_depend_on_memory_layout():
     c = position_means(45.0, np.concatenate([gyro[:7000], gyro[7000:]]), accel, 0, 0, 1000.0)
     assert a == b == c  # bit for bit
     assert a.samples == 30000 and a.accel_samples == 3000 and a.duration_device_s == 30.0
+
+
+@pytest.mark.parametrize("move_deg", [45.0, 480.0])
+def test_the_rest_after_the_motion_starts_no_earlier_than_the_planned_move_ends(move_deg):
+    """A stream started at READY (the planned move's end) skips `after_motion_s` of samples: it must
+    then start at or after the settle's end, and not more than two windows later. Trapezoid at 20 °/s and
+    80 °/s², then a stop ringing 10× harder than firmware_sim's default (0.05°, 10 Hz, τ 0.3 s)."""
+    rng = np.random.default_rng(3)
+    v, a, dt = 20.0, 80.0, 1.0 / RATE_HZ
+    t_ramp, t_end = v / a, move_deg / v + v / a
+    t = np.arange(0.0, t_end + 8.0, dt)
+    rate_dps = np.clip(np.minimum(t / t_ramp, (t_end - t) / t_ramp), 0.0, 1.0) * v
+    z = rate_dps * 3600.0 + rng.normal(0.0, 0.5, t.size)
+    after = t > t_end
+    z[after] += _ringing_z_dph(t[after] - t_end, 0.05, 10.0, 0.3, 0.0, rng) - 9.6
+    cfg = RunConfig()
+    windows = [z[k : k + WINDOW] for k in range(0, z.size - WINDOW + 1, WINDOW)]
+    settled = next(k for k in range(1, len(windows))
+                   if k * WINDOW * dt > t_end and settle_reached(windows[: k + 1], cfg.settle_ratio,
+                                                                 cfg.settle_rest_dph))  # fmt: skip
+    means = [float(np.mean(w)) for w in windows[: settled + 1]]
+    skip_s = after_motion_s(means, WINDOW * dt, 0.0)
+    settle_end_s = (settled + 1) * WINDOW * dt
+    assert t_end + skip_s >= settle_end_s - 1e-9
+    assert t_end + skip_s <= settle_end_s + 2 * WINDOW * dt
+    assert after_motion_s([0.0, 0.0], WINDOW * dt, 0.0) is None

@@ -204,7 +204,7 @@ def run_plan(name, spec, estimator, args, sensor, err, stage, rng, terms=None):
 def plans(elapsed_s: float, stage: P.Stage, n: int, revolutions: int):
     """(name, spec, estimator, motion terms, stage) per row, every plan lasting elapsed_s."""
     d = P.positions_dwell_for(elapsed_s, n, stage)
-    one_way = P.Stage(stage.speed_deg_s, stage.accel_deg_s2, stage.settle_s, stage.restart_s, False)
+    one_way = P.Stage(stage.speed_deg_s, stage.accel_deg_s2, stage.settle_s, stage.turnaround_s, False)
     d1 = P.positions_dwell_for(elapsed_s, n, one_way)
     sweep = P.PlanSpec("sweep", revolutions, P.sweep_dwell_for(elapsed_s, revolutions, stage), "zigzag")
     pm, pm1 = P.PlanSpec("positions+motion", n, d), P.PlanSpec("positions+motion", n, d1)

@@ -77,8 +77,9 @@ def _plan_rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         n = motion["samples"]
         kind = result.get("plan", "positions+motion")
         how = " (rests reached the long way round, whole turns both ways)" if kind == "sweep" else ""
+        last = "the rest after the return" if n.get("through_return") else "the last"
         rows.append(("plan", f"{kind}{how}: every gyro sample, {n['used_device_s']:.1f} s from the "
-                     f"first dwell to the last (dwells alone ± {dwell['heading_std_deg']:.4f}°)"))
+                     f"first dwell to {last} (dwells alone ± {dwell['heading_std_deg']:.4f}°)"))
     elif motion is not None:
         rows.append(("plan", "positions (dwells only): the motion samples could not be used — "
                      f"{motion['reason']}"))

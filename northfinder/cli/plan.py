@@ -21,7 +21,7 @@ _NUMBERS = {
     "latitude": "--latitude", "target_std": "--target-std", "time_budget": "--time-budget", "arw": "--arw",
     "bias_instability": "--bias-instability", "rrw": "--rrw", "accel_noise": "--accel-noise",
     "tilt": "--tilt", "stage_speed": "--stage-speed", "stage_accel": "--stage-accel", "settle": "--settle",
-    "restart": "--restart",
+    "turnaround": "--turnaround",
 }  # fmt: skip
 
 
@@ -50,8 +50,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--settle", default=str(d.settle_s), metavar="S", help="at rest after a move before a dwell [s]"
     )
-    p.add_argument("--restart", default=str(d.restart_s), metavar="S",
-                   help="accelerometer CAN node restart before each dwell [s]")  # fmt: skip
+    p.add_argument("--turnaround", default=str(d.turnaround_s), metavar="S",
+                   help="from a dwell's end to the next move command [s]")  # fmt: skip
     p.add_argument("--no-return", action="store_true", help="the run does not return to its start angle")
     p.set_defaults(func=run)
 
@@ -85,7 +85,7 @@ def _check(v: dict[str, float | None], args: argparse.Namespace) -> None:
         ("stage_speed", v["stage_speed"] > 0, "use the stage's speed in deg/s (> 0)"),
         ("stage_accel", v["stage_accel"] > 0, "use the stage's acceleration in deg/s² (> 0)"),
         ("settle", v["settle"] >= 0, "use 0 s or more"),
-        ("restart", v["restart"] >= 0, "use 0 s or more"),
+        ("turnaround", v["turnaround"] >= 0, "use 0 s or more"),
         ("arw", v["arw"] is None or v["arw"] > 0, "use an ARW greater than 0 °/√h"),
     ]  # fmt: skip
     for key in ("bias_instability", "rrw", "accel_noise"):
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     v = _numbers(args)
     _check(v, args)
     sensor = sensor_from(args, v)
-    stage = model.Stage(v["stage_speed"], v["stage_accel"], v["settle"], v["restart"], not args.no_return)
+    stage = model.Stage(v["stage_speed"], v["stage_accel"], v["settle"], v["turnaround"], not args.no_return)
     choice = model.choose_plan(
         sensor,
         v["latitude"],

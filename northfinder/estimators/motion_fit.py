@@ -198,7 +198,7 @@ def heading_from_rates(v_x_dph, v_y_dph, up_p, latitude_deg: float, cov_dph2=Non
 def place_samples(
     sample_index, gyro_dph, dwells, rate_hz: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, int]]:
-    """Every gyro sample from the first dwell's start to the last dwell's end with its table angle
+    """Every gyro sample from the first rest's start to the last rest's end with its table angle
     and rate (eq M1 per pair of dwells), for the per-sample fit.
 
     `sample_index` (m,) strictly increasing device indices, `gyro_dph` (m, 3) with a z gyro;

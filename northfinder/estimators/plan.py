@@ -65,15 +65,17 @@ GRADES: dict[str, Sensor] = {
 
 @dataclass(frozen=True)
 class Stage:
-    """The stage and what a stop costs today. speed/accel: SMC100 `VA`/`AC` (firmware_sim's
-    defaults 20 °/s, 80 °/s²); settle_s: at rest after READY before a dwell (~4.6 s in issue 13's
-    run); restart_s: the accelerometer's CAN node restarted before each dwell (~2–3 s);
-    return_to_start: the run ends with the move back (and its settle) — part of the elapsed time."""
+    """The stage and what a stop costs. speed/accel: SMC100 `VA`/`AC` (firmware_sim's defaults
+    20 °/s, 80 °/s²); settle_s: from the end of a move until a dwell starts (the gyro-z ringing
+    criterion and its margin: 3.0–3.4 s on firmware_sim); turnaround_s: from a dwell's end to the
+    next move command (the accelerometer's dwell completing, the encoder read, the dwell's 1 s
+    sample grid: 0.5–1.5 s on firmware_sim at 12×); return_to_start: the run ends with the move
+    back and its settle — part of the elapsed time (and of a motion plan's fit)."""
 
     speed_deg_s: float = 20.0
     accel_deg_s2: float = 80.0
-    settle_s: float = 4.6
-    restart_s: float = 2.5
+    settle_s: float = 3.2
+    turnaround_s: float = 1.3
     return_to_start: bool = True
 
 
@@ -184,21 +186,25 @@ class _Builder:
 
 
 def schedule(spec: PlanSpec, stage: Stage, dt_s: float = 0.1) -> Schedule:
-    """The plan's time line (eq P1). positions: [settle, restart, dwell] at each of n equally
-    spaced angles, moves of 360°/n between, then the return move and its settle; positions+motion:
-    the same, every sample used; sweep: the same at the rests of `sweep_targets_deg`, whose moves
-    are 360° plus the step, every sample used."""
+    """The plan's time line (eq P1). positions: [settle, dwell] at each of n equally spaced
+    angles, [turnaround, move of 360°/n] between, then the turnaround, the return move and its
+    settle; positions+motion: the same, every sample from the first dwell's start to the rest after
+    the return used (the run's fit pins the table angle at the dwells and at that rest); sweep: the
+    same at the rests of `sweep_targets_deg`, whose moves are 360° plus the step."""
     b = _Builder(dt_s)
     v, a = stage.speed_deg_s, stage.accel_deg_s2
     targets = _targets(spec)
     motion = spec.kind != "positions"
     b.angle = targets[0]
+    b.hold(stage.settle_s, False)
     for i in range(spec.n):
         if i:
+            b.hold(stage.turnaround_s, motion)
             b.move(targets[i] - targets[i - 1], v, a, motion)
-        b.hold(stage.settle_s + stage.restart_s, motion)
+            b.hold(stage.settle_s, motion)
         b.hold(spec.dwell_s, True)
-    if stage.return_to_start:
+    if stage.return_to_start:  # the run pins the rest after the return too (a `returned` event)
+        b.hold(stage.turnaround_s, motion)
         b.move(targets[0] - targets[-1], v, a, motion)
         b.hold(stage.settle_s, motion)
     return b.build(spec.n * spec.dwell_s)
@@ -296,7 +302,7 @@ class Prediction:
 
 def _grid_dt(spec: PlanSpec, stage: Stage) -> float:
     """A grid fine enough for the moves, at most ~6000 samples for long plans."""
-    rough = spec.n * (spec.dwell_s + stage.settle_s + stage.restart_s) + 400.0
+    rough = spec.n * (spec.dwell_s + stage.settle_s + stage.turnaround_s) + 400.0
     if spec.kind == "sweep":
         rough += spec.n * 540.0 / stage.speed_deg_s
     return max(0.05, rough / 6000.0)
@@ -344,10 +350,10 @@ def sweep_dwell_for(elapsed_s: float, n: int, stage: Stage) -> float:
 
 def _dwell_for(elapsed_s: float, targets: list[float], stage: Stage) -> float:
     n = len(targets)
-    fixed = n * (stage.settle_s + stage.restart_s)
+    fixed = n * stage.settle_s + (n - 1) * stage.turnaround_s
     fixed += sum(move_time_s(b - a, stage) for a, b in zip(targets[:-1], targets[1:], strict=True))
     if stage.return_to_start:
-        fixed += move_time_s(targets[-1] - targets[0], stage) + stage.settle_s
+        fixed += stage.turnaround_s + move_time_s(targets[-1] - targets[0], stage) + stage.settle_s
     return (elapsed_s - fixed) / n
 
 

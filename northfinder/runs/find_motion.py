@@ -48,12 +48,16 @@ def motion_samples(rd: RunDir, events: Sequence[dict[str, Any]], block: Any = No
     gyro = np.asarray(block.gyro_rad_s, dtype=float) / DPH
     if gyro.size == 0 or not np.any(np.isfinite(gyro[:, 2])):
         return None, "no gyro z: the table angle between dwells is unknown"
-    dwells = [(e["imu"]["first_index"], e["imu"]["last_index"], e["table_angle_deg"]) for e in positions]
+    # the rests at the positions, and the one after the return when the run pinned it (`returned`)
+    returned = [e for e in events if e.get("event") == "returned"]
+    rests = positions + returned
+    dwells = [(e["imu"]["first_index"], e["imu"]["last_index"], e["table_angle_deg"]) for e in rests]
     rate_hz = float(imu_cfg["rate_hz"])
     alpha, omega, placed, counts = place_samples(block.sample_index, gyro, dwells, rate_hz)
     idx = block.sample_index
     counts["fit_span_device_s"] = float(max(d[1] for d in dwells) - min(d[0] for d in dwells) + 1) / rate_hz
     counts["before_first_dwell_s"] = float(min(d[0] for d in dwells) - idx[0]) / rate_hz
+    counts["through_return"] = bool(returned)
     return (alpha, omega, placed, counts), None
 
 
