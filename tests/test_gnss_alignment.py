@@ -313,6 +313,28 @@ def test_heading_is_held_while_standing_still(data, prior_std_deg):
     assert sd[-1] >= 0.99 * sd[0]
 
 
+def test_hold_ends_with_the_first_acceleration(data):
+    """The heading is held while standing, and released by the IMU's horizontal specific force (heading
+    aside, beyond 4σ of tilt, bias and noise) as soon as the vehicle accelerates — not only once the
+    fix speed passes 0.2 m/s, which on a gentle start comes ~0.5–1 s later while the accelerations the
+    heading is seen in have already passed (from 90° that left a 2σ error for seconds)."""
+    imu, gnss, traj = short = first_seconds(data, MOTION_START_S + 3.0)
+    speed = np.hypot(gnss.vel_enu_m_s[:, 0], gnss.vel_enu_m_s[:, 1])
+    released = {}
+    for label, k in (("force", 4.0), ("speed only", math.inf)):
+        res, err = run(align_gnss, short, 90.0, replace(CONFIG, heading_std_deg=90.0, still_force_sigmas=k))
+        t = res.history.t_s
+        first = int(np.nonzero(np.abs(err - 90.0) > 0.01)[0][0])
+        released[label] = float(t[first])
+        assert np.abs(err[t < MOTION_START_S] - 90.0).max() < 0.01  # held while standing
+    fix_speed = float(speed[np.searchsorted(gnss.t_s, released["force"] - 1e-6)])
+    print(f"\nheading released at {released['force'] - MOTION_START_S:.1f} s of motion (fix speed "
+          f"{fix_speed:.2f} m/s), by the fix speed alone at {released['speed only'] - MOTION_START_S:.1f} s")
+    assert released["force"] >= MOTION_START_S
+    assert fix_speed < CONFIG.still_speed_m_s
+    assert released["force"] < released["speed only"]
+
+
 PYINS_T1_S = {10.0: 2.0, 45.0: 3.4, 90.0: 8.3, 180.0: 12.4}
 """Issue 16: python-ins (pyins 1.0.1) on the same kind of recorded drive, time to < 1° after motion."""
 

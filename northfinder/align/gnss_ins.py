@@ -186,6 +186,13 @@ class GnssAlignConfig:
     level_s: float = 5.0
     converged_std_deg: float = 1.0
     still_speed_m_s: float = 0.2
+    still_force_sigmas: float = 4.0
+    """Standing also needs the IMU's horizontal specific force (heading aside) within this many σ of
+    zero: the heading becomes observable with the first acceleration, before the fix speed shows it."""
+    iterate_deg: float = 1.0
+    """A sin/cos update that moves the heading by more than this is done again about the new heading
+    (iterated EKF, at most `max_iterations` more times): the first updates after a large error."""
+    max_iterations: int = 4
     noise_source: str = "default"
     """Where the IMU noise and bias figures came from: "default" (the conservative figures above, for
     an IMU whose grade is not known) or "grade <name>" (IMU_GRADES, `for_imu_grade`)."""
@@ -319,6 +326,7 @@ class _ErrorStateFilter:
         self.x = np.zeros(self.n)  # error-state mean: zero after feedback except what could not be applied
         self.P[self.A, self.A] = self.attitude_prior(initial_heading_rad)
         self.omega_nb_b = np.zeros(3)
+        self.force_z2 = 0.0  # squared Mahalanobis size of the last chunk's horizontal specific force
 
     # -- subclass hooks --------------------------------------------------------------------------
     def attitude_prior(self, heading_rad: float) -> np.ndarray:
@@ -392,11 +400,32 @@ class _ErrorStateFilter:
         # body rate at the chunk's end (last sample), not the chunk mean: a 50 ms lag would shrink
         # the lever-arm velocity of a 1–2 Hz body motion by 5–20 % and bias the lever arm estimate
         self.omega_nb_b = s.omega_end_b_rad_s - c.T @ (w_ie + w_en)
+        self.force_z2 = self._horizontal_force_z2(F, s, qc)
+
+    def _horizontal_force_z2(self, F: np.ndarray, s: ChunkSummary, qc: np.ndarray) -> float:
+        """(Ĉf)_hᵀ S⁻¹ (Ĉf)_h for the chunk's mean specific force: S is the variance the horizontal
+        force has from everything but the heading (tilt, accelerometer bias: F's velocity rows without
+        the heading columns; the accelerometer noise over the chunk). A still vehicle's is chi-square
+        with 2 degrees of freedom; an accelerating one's is large."""
+        f_h = (self.ins.state.c_bn @ s.f_b_m_s2)[0:2]
+        h = F[3:5].copy()
+        heading = self.heading_rows()
+        if heading is not None:
+            h[:, heading] = 0.0
+        h[:, P_] = 0.0
+        h[:, V_] = 0.0
+        cov = h @ self.P @ h.T + np.eye(2) * qc[3] / s.dt_s
+        return float(f_h @ np.linalg.solve(cov, f_h))
 
     # -- measurement update ----------------------------------------------------------------------
     def update(self, pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s: float) -> np.ndarray:
         """GNSS antenna position and velocity update with the lever arm (paper eq 15–21), then
         feedback of every estimate (eq 23). Returns the innovation [6]."""
+        return self._update_once(pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s)[0]
+
+    def _update_once(self, pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s: float):
+        """One linearized update and feedback. Returns the innovation, the posterior error-state mean
+        before feedback, and the reset Jacobian g that maps errors about the old estimate to the new."""
         st = self.ins.state
         c = st.c_bn
         la = self.lever_arm_b_m
@@ -417,7 +446,7 @@ class _ErrorStateFilter:
         S = H @ self.P @ H.T + R
         K = np.linalg.solve(S, H @ self.P).T
         held = self.heading_rows()
-        if held is not None and self.standing(vel_m_s, vel_std_m_s):
+        if held is not None and self.standing(vel_m_s, vel_std_m_s) and not self.accelerating():
             # Standing still: nothing observes the heading (the antenna is fixed whatever the heading,
             # and the lever arm term δC·l̂a only trades against δP); what the update would move it by
             # is noise and linearization error. Consider, not estimate, the heading there (Schmidt):
@@ -438,7 +467,12 @@ class _ErrorStateFilter:
         g[P_, self.LA] += c_old - self.ins.state.c_bn
         g[self.A, self.A] = g_att
         self.P = g @ self.P @ g.T
-        return z
+        return z, x, g
+
+    def accelerating(self) -> bool:
+        """The last chunk's horizontal specific force is beyond `still_force_sigmas` of what tilt, bias
+        and noise give a still vehicle (the heading is observable through δC·f)."""
+        return self.force_z2 > self.cfg.still_force_sigmas**2
 
     def standing(self, vel_m_s, vel_std_m_s) -> bool:
         """The fix says the vehicle stands: horizontal speed below `still_speed_m_s` (or 4σ of its noise
@@ -589,6 +623,29 @@ class SinCosFilter(_ErrorStateFilter):
             p_u = w @ p_la @ w.T
             out[rows, rows] = sum(p_u[i, j] * jac[i] @ p_att @ jac[j].T for i in range(3) for j in range(3))
         return out
+
+    def update(self, pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s: float) -> np.ndarray:
+        """The update, iterated (IEKF) while it moves the heading by more than `iterate_deg`.
+
+        η is exact in δC, but the lever arm, tilt and bias corrections of an update that turns the
+        heading by tens of degrees were computed about the old heading (the δC·δla products, ε's frame,
+        F's heading terms). Each iteration expresses the same prior in the errors about the newest
+        estimate — mean g·(m − x̂⁺) + remainder, covariance G P⁻ Gᵀ with G the product of the reset
+        Jacobians — and updates with the same fix again, so the first updates from a large error do
+        not leave those states where the old heading put them."""
+        m, p_prior = self.x.copy(), self.P.copy()
+        psi = _heading_split(self.ins.state.c_bn)[0]
+        z, x_post, g = self._update_once(pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s)
+        m, g_tot = g @ (m - x_post) + self.x, g
+        for _ in range(self.cfg.max_iterations):
+            psi_new = _heading_split(self.ins.state.c_bn)[0]
+            if abs(math.remainder(psi_new - psi, 2.0 * math.pi)) <= math.radians(self.cfg.iterate_deg):
+                break
+            psi = psi_new
+            self.x, self.P = m, g_tot @ p_prior @ g_tot.T
+            _, x_post, g = self._update_once(pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s)
+            m, g_tot = g @ (m - x_post) + self.x, g @ g_tot
+        return z
 
     def heading_rows(self) -> slice:
         """η1, η2."""
