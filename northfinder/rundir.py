@@ -67,6 +67,18 @@ class RunDir:
         elif not self.path.is_dir():
             raise InputError(f"{self.path}: no such run directory")
 
+    @classmethod
+    def new_run(cls, path: str | Path, resume_hint: str = "") -> RunDir:
+        """The directory of a new run (`--out`): made if missing; one that already holds a run (its
+        events log) is refused — the second run's events would join the first's and its raw logs
+        replace theirs, so neither could be replayed."""
+        p = Path(path)
+        if (p / EVENTS).exists():
+            raise InputError(
+                f"--out {p} already holds a run ({EVENTS}); give a new directory{resume_hint}"
+            )
+        return cls(p)
+
     # -- paths -------------------------------------------------------------------------------
     def file(self, name: str) -> Path:
         return self.path / name

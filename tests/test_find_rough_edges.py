@@ -54,6 +54,23 @@ def test_an_existing_out_directory_is_never_removed_by_a_failed_start(tmp_path):
     assert (out / "notes.txt").read_text(encoding="utf-8") == "the user's"
 
 
+@pytest.mark.parametrize("argv", [("find", "--simulate"), ("align", "--mode", "gnss", "--simulate"),
+                                  ("align", "--mode", "swaying", "--simulate")])
+def test_out_onto_a_directory_holding_a_run_is_refused_and_the_run_left_as_it_was(tmp_path, argv):
+    """A second run written into the first's directory would append its events to the first's and
+    replace its raw logs: neither could be replayed. One line names the directory; nothing changes."""
+    out = tmp_path / "run"
+    out.mkdir()
+    events = '{"event": "start", "session": 1}\n'
+    (out / "events.jsonl").write_text(events, encoding="utf-8")
+    proc = run_cli(*argv, "--out", str(out), cwd=tmp_path)
+    line = northfinder_line(proc.stderr)
+    assert proc.returncode == USAGE_EXIT and str(out) in line and "already holds a run" in line, line
+    assert ("--resume" in line) == (argv[0] == "find")
+    assert sorted(p.name for p in out.iterdir()) == ["events.jsonl"]
+    assert (out / "events.jsonl").read_text(encoding="utf-8") == events
+
+
 def test_ctrl_c_before_the_first_position_leaves_a_run_that_replay_and_resume_explain(tmp_path):
     out = tmp_path / "run"
     proc = start_cli("find", *FAST, "--out", str(out), cwd=tmp_path)

@@ -301,7 +301,7 @@ def run(args: argparse.Namespace) -> int:
     bench = config.load(args.config) if args.config else None  # flags override its [gnss_alignment]
     if duration is None:
         duration = (bench.gnss_alignment if bench is not None else config.GnssAlignmentConfig()).duration_s
-    rd = RunDir(args.out or default_out())
+    rd = RunDir.new_run(args.out or default_out())
     t_wall = time.monotonic()
     with base.removed_if_unstarted(rd, gr.OWN_FILES):  # a failed start leaves no empty directory
         if args.simulate:

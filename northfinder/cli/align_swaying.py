@@ -206,7 +206,7 @@ def _bench_window(
 
 def run(args: argparse.Namespace) -> int:
     duration, sway, period, bench = _check(args)
-    rd = RunDir(args.out or default_out())
+    rd = RunDir.new_run(args.out or default_out())
     t_wall = time.monotonic()
     # matplotlib takes a second or two to import: do it while the simulator or the IMU port starts
     threading.Thread(target=_preload_matplotlib, name="preload-matplotlib", daemon=True).start()

@@ -149,7 +149,8 @@ def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSetting
 
         grade = req.grade or (SimSettings.grade if req.simulate else None)
         prediction = choose_for_run(cfg, grade, req.target_std, req.time_budget)
-    rundir = RunDir(req.out or default_out("find"))
+    out = req.out or default_out("find")
+    rundir = RunDir.new_run(out, f", or continue that one with `northfinder find --resume {out}`")
     settings = None
     if req.simulate:
         settings = SimSettings(
