@@ -636,8 +636,13 @@ class Sequencer:
         if not pin:
             return
         travel_deg = abs(target - here)
-        settle = self.settle(expect_motion=travel_deg >= MIN_VISIBLE_MOVE_DEG, move_deg=travel_deg)
-        rest = self._read_imu(max(2, int(round(self.run_cfg.settle_window_s * float(self.imu.rate_hz)))))
+        try:
+            settle = self.settle(expect_motion=travel_deg >= MIN_VISIBLE_MOVE_DEG, move_deg=travel_deg)
+            rest = self._read_imu(max(2, int(round(self.run_cfg.settle_window_s * float(self.imu.rate_hz)))))
+        except DeviceError as exc:  # every position is measured: the fit then ends at the last dwell
+            self._event({"event": "return_unpinned", "error": str(exc)})
+            log.warning("no rest measured after the return (%s): the fit ends at the last dwell", exc)
+            return
         idx = np.asarray(rest.sample_index)
         self._event({
             "event": "returned", "commanded_deg": target,

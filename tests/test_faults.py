@@ -75,19 +75,20 @@ def _sim_config(faults: list[str], seed: int = 3) -> object:
 
 
 def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS, dwell_s: float = DWELL_S,
-                during_dwell=None, link_timeout_s: float = 1.0, **seq_kwargs) -> dict:
+                during_dwell=None, phase: str = "dwell", link_timeout_s: float = 1.0, **seq_kwargs) -> dict:
     """One find on an in-process firmware_sim with `faults`; the result (or RunFailed raised).
 
-    `during_dwell(sim, progress)` is called on every dwell progress report: a fault that must start
-    mid-dwell is injected there by the simulator, at a device time taken from its clock (the
-    settle criterion waits out a bump that starts before the dwell, so a fixed time is not enough).
+    `during_dwell(sim, progress)` is called on every progress report of `phase` (a dwell's): a
+    fault that must start mid-dwell is injected there by the simulator, at a device time taken from
+    its clock (the settle criterion waits out a bump that starts before the dwell, so a fixed time is
+    not enough).
     """
     from firmware_sim.simulator import Simulator
     from northfinder.runs.find import measure
 
     sim = Simulator(_sim_config(faults))
     if during_dwell is not None:
-        seq_kwargs["on_progress"] = lambda p: during_dwell(sim, p) if p.phase == "dwell" else None
+        seq_kwargs["on_progress"] = lambda p: during_dwell(sim, p) if p.phase == phase else None
     with sim as endpoints:
         cfg = bench_config(endpoints, TRUTH["latitude_deg"])
         cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
@@ -314,6 +315,24 @@ def test_imu_silent_for_good_stops_the_run_after_n_attempts_with_its_data_saved(
     assert [e for e in _events(run_dir) if e["event"] == "end"] == [
         {"event": "end", "complete": False, "positions_measured": 3}
     ]
+    _check_replay_identical(run_dir)
+
+
+def test_imu_silent_during_the_return_keeps_the_complete_run_and_ends_the_fit_at_the_last_dwell(tmp_path):
+    """The rest after the return only extends the motion fit: when the IMU falls silent as the
+    stage returns, the run is still complete, the event log says why the return was not pinned,
+    and the fit ends at the last dwell (replay identical)."""
+    def silent_from_the_return(sim, p) -> None:
+        if p.phase == "return" and sim.imu.silence is None:
+            sim.imu.silence = (sim.clock.now(), 1e5)
+
+    run_dir = tmp_path / "run"
+    result = _in_process(run_dir, [], positions=4, during_dwell=silent_from_the_return, phase="return")
+    assert result["complete"] is True and result["positions_measured"] == 4
+    events = _events(run_dir)
+    returns = [e["event"] for e in events if e["event"] in ("returned", "return_unpinned")]
+    assert returns == ["return_unpinned"]
+    assert result["motion_fit"]["available"] and result["motion_fit"]["samples"]["through_return"] is False
     _check_replay_identical(run_dir)
 
 
