@@ -99,7 +99,9 @@ class Stage:
     """A tiny SMC100 host for the tests: send a line, read the reply line."""
 
     def __init__(self, path: str) -> None:
-        self.port = serial.Serial(path, 57600, timeout=2.0)
+        # a host-time bound only: at 100× the IMU's stream shares the simulator's process, and on a
+        # loaded host a reply has taken over 2 s to be written (never in device time)
+        self.port = serial.Serial(path, 57600, timeout=10.0)
 
     def send(self, text: str) -> None:
         self.port.write(text.encode("ascii") + b"\r\n")
