@@ -150,6 +150,11 @@ class SettleResult:
     """Device time from the start of the last gyro-z window still turning to the end of the settle
     (None when no motion was seen): how much of the rest after READY the settle took, at most."""
 
+    def as_event(self) -> dict[str, Any]:
+        """The settle as the events log records it."""
+        return {"settle_s": self.settle_s, "settled": self.settled, "windows": self.windows,
+                "after_motion_s": self.after_motion_s}
+
     @property
     def rest_before_dwell_s(self) -> float:
         """Device time a stream started at READY must drop before the dwell: the settle after the
@@ -647,7 +652,7 @@ class Sequencer:
         self._event({
             "event": "returned", "commanded_deg": target,
             "table_angle_deg": float(self.turntable.position_deg()),
-            "settle": {"settle_s": settle.settle_s, "settled": settle.settled, "windows": settle.windows},
+            "settle": settle.as_event(),
             "imu": {"first_index": int(idx[0]), "last_index": int(idx[-1]), "samples": int(idx.size)},
         })
 
@@ -856,8 +861,7 @@ class Sequencer:
                 "index": i,
                 "commanded_deg": target,
                 "table_angle_deg": angle_deg,
-                "settle": {"settle_s": settle.settle_s, "settled": settle.settled, "windows": settle.windows,
-                           "after_motion_s": settle.after_motion_s},
+                "settle": settle.as_event(),
                 "imu": {
                     "first_index": int(idx[0]),
                     "last_index": int(idx[-1]),
