@@ -93,6 +93,11 @@ def test_simulated_300_s_alignment_is_within_3_sigma_of_the_truth(e2e_run):
     assert coarse["heading_std_deg"] is None and coarse["base_still"] is False
     assert any("bias floor" in c for c in result["sigma_covers"]["covers"])
     assert result["diagnostics"]["heading_std_parts_deg"]["bias_prior"] > 0.0
+    # the lever arm is estimated with the heading, and the grade's scale-factor asymmetry, which the sway
+    # rectifies into a bias, is in the σ (docs/swaying.md §5)
+    assert len(result["diagnostics"]["lever_arm_m"]) == 3 and tr["lever_arm_m"] == list(sr.SIM_LEVER_ARM_M)
+    assert result["diagnostics"]["heading_std_parts_deg"]["sf_asymmetry"] > 0.0
+    assert any("asymmetry" in c for c in result["sigma_covers"]["covers"])
     if cut is None:  # an overrun loses bytes, so the raw log is shorter then
         assert (run_dir / "imu.raw").stat().st_size >= 36 * 300_000
     assert (run_dir / "report.png").stat().st_size > 0

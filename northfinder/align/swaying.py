@@ -55,6 +55,7 @@ __all__ = [
     "minimum_duration_s",
     "predicted_heading_std_deg",
     "GRADE_BIAS_1SIGMA",
+    "GRADE_SF_ASYMMETRY_PPM",
     "grade_bias_prior",
 ]
 
@@ -67,6 +68,9 @@ METHODS = ("cone", "cone-gls", "circle")
 measured noise (what a Kalman filter on the same windows would reach); circle: the paper's free fit."""
 _BH4 = (0.35875, 0.48829, 0.14128, 0.01168)  # Blackman–Harris 4-term coefficients
 _BH4_MAIN_LOBE_BINS = 4.0  # half-width of its main lobe in 1/L_w; side lobes below −92 dB
+LEVER_ARM_STD_M = 10.0
+"""Prior 1σ per axis of the IMU's lever arm from the point the ship turns about [m] (an IMU within
+~10 m of a ship's roll centre); the sway determines the arm far better where it observes it."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -209,12 +213,34 @@ class (the data-sheet class figures of docs/simulator.md's grades). A fixed base
 gyro bias from the Earth rate: it is the bias floor εE/(Ωe·cos L) the reported σ must carry."""
 
 
+GRADE_SF_ASYMMETRY_PPM: dict[str, float] = {
+    "nav": 1.0,
+    "kvh1760": 20.0,
+    "tactical-mems": 200.0,
+    "consumer": 2000.0,
+}
+"""1σ gyro scale-factor asymmetry (S₊ − S₋)/S [ppm] per IMU class (docs/simulator.md's grades). The sway
+rectifies it into a bias (`_sway_rectified_bias_rad_s`) that, like the turn-on bias, cannot be separated
+from the Earth rate."""
+
+
 def grade_bias_prior(grade: str | None) -> dict[str, float]:
-    """align_swaying's bias-prior keyword arguments for an IMU class; {} when the class is unknown."""
+    """align_swaying's bias-prior keyword arguments for an IMU class (turn-on biases and scale-factor
+    asymmetry); {} when the class is unknown."""
     if grade is None or grade not in GRADE_BIAS_1SIGMA:
         return {}
     gyro_dph, accel_ug = GRADE_BIAS_1SIGMA[grade]
-    return {"gyro_bias_dph": gyro_dph, "accel_bias_ug": accel_ug}
+    return {"gyro_bias_dph": gyro_dph, "accel_bias_ug": accel_ug,
+            "gyro_sf_asymmetry_ppm": GRADE_SF_ASYMMETRY_PPM[grade]}
+
+
+def _sway_rectified_bias_rad_s(rate_rad_s: np.ndarray, asymmetry_ppm: float) -> np.ndarray:
+    """1σ per body axis [rad/s] of the bias a scale-factor asymmetry A = (S₊ − S₋)/S makes of the sway.
+
+    A rate ω reads (1 ± A/2)·ω by its sign, so the error (A/2)·|ω| has the mean (A/2)·mean|ω|: a constant
+    bias while the ship sways (1 ppm on the reference roll's 5 °/s mean rate: 0.009 °/h, as large as a
+    nav-grade turn-on bias) that no fit can tell from the Earth rate. mean|ω| is measured from the data."""
+    return 0.5 * asymmetry_ppm * 1e-6 * np.mean(np.abs(rate_rad_s), axis=0)
 
 
 def minimum_duration_s(max_sway_period_s: float) -> float:
@@ -283,6 +309,85 @@ def _fit_cone(f_ib0, m_n0, t_end_s, latitude_rad):
     return c_ib0_nt, axis
 
 
+@dataclass(frozen=True)
+class _LeverModel:
+    """The lever-arm term of the smoothed specific force, F_j^lever = G_j·r (docs/swaying.md eq. 4a),
+    and the prior that keeps r where the sway does not observe it: `ridge` = s²/σ_r² per axis."""
+
+    g: np.ndarray
+    """G_j [m,3,3] [1/s²]: the windows' second derivative of C_b^{i_b0}(t) (`_lever_kernels`)."""
+    ridge: float
+
+
+def _lever_model(
+    q: np.ndarray,
+    starts: np.ndarray,
+    h: np.ndarray,
+    dt: float,
+    f_win: np.ndarray,
+    cov_phi: np.ndarray,
+    cov_acc: np.ndarray,
+    lever_arm_std_m: float,
+) -> _LeverModel | None:
+    """The lever-arm term for the cone fits, or None when `lever_arm_std_m` is 0 (not estimated).
+
+    The prior σ_r enters as a ridge s²/σ_r², s² the modelled noise power of one window component
+    (white noise and bias priors, docs/swaying.md §5): where the sway does not observe r (a still
+    base: G ≈ 0) the estimate stays near 0 instead of fitting noise."""
+    if lever_arm_std_m <= 0.0:
+        return None
+    m = f_win.shape[0]
+    s_f = _block_skew(f_win)
+    s2 = float(np.mean(np.diag(s_f @ cov_phi[: 3 * m, : 3 * m] @ s_f.T + cov_acc)))
+    return _LeverModel(_lever_kernels(q, starts, h, dt), s2 / lever_arm_std_m**2)
+
+
+def _lever_kernels(q: np.ndarray, starts: np.ndarray, h: np.ndarray, dt: float) -> np.ndarray:
+    """G_j = Σ_c Δ²h_c·C_b^{i_b0}(t_c)/dt² [m,3,3]: a window's lever-arm specific force per metre of r.
+
+    An IMU at r (body axes, fixed) from the point the sway turns about sees, in the inertial i_b0,
+    the extra acceleration d²(C_b^{i_b0}·r)/dt² = C_b^{i_b0}(ω̇×r + ω×(ω×r)). Smoothed by h_j and summed
+    by parts twice (h and h' vanish at a window's ends), it is Σ_c Δ²h_c·C(t_c)·r/dt²: only the
+    attitude from step 1, no differentiated gyro. The sway's products beat at difference frequencies
+    (roll 8 s × yaw 10 s → 40 s, × pitch 6 s → 24 s) inside the window's main lobe: this term is
+    what leaks through the smoothing (docs/swaying.md §8). C at the interval centres: mean of the ends.
+    The stencil reaches one centre past each end so that its weights sum to zero (C·r itself is metres;
+    the second difference must see only its curvature); at the record's ends that centre is extrapolated
+    linearly, which leaves h_0·a·dt² (h_0 ≈ 6e-5 of the peak, a the arm's acceleration).
+    """
+    c = quat_to_dcm(q)
+    c_mid = 0.5 * (c[:-1] + c[1:]).reshape(-1, 9)
+    c_mid = np.concatenate([2 * c_mid[:1] - c_mid[1:2], c_mid, 2 * c_mid[-1:] - c_mid[-2:-1]])  # −1 … n
+    d2h = np.diff(np.concatenate([[0.0, 0.0], h, [0.0, 0.0]]), n=2) / dt**2  # centres −1 … lw
+    lw = h.size
+    return np.stack([d2h @ c_mid[s0: s0 + lw + 2] for s0 in starts]).reshape(-1, 3, 3)
+
+
+def _fit_cone_lever(f_ib0, m_n0, lever: _LeverModel, iterations: int = 3):
+    """Cone fit with the lever arm r estimated with it (eq. 6 amended by 4a): min Σ|F_j − C·M_j − G_j·r|²
+    + ridge·|r|². Gauss–Newton from the Wahba solution on (δ, r), C ← C·exp([δ×]): r enters linearly,
+    the rotation is sub-degree, so three steps converge. Returns (C_{n0}^{i_b0}, r [m])."""
+    c = _wahba(f_ib0, m_n0)
+    r = np.zeros(3)
+    prior = np.hstack([np.zeros((3, 3)), np.sqrt(lever.ridge) * np.eye(3)])
+    for _ in range(iterations):
+        a = np.concatenate([-(c @ skew(m_n0)).reshape(-1, 3), lever.g.reshape(-1, 3)], axis=1)
+        res = (f_ib0 - m_n0 @ c.T - np.einsum("jik,k->ji", lever.g, r)).ravel()
+        step = np.linalg.lstsq(np.vstack([a, prior]), np.concatenate([res, -np.sqrt(lever.ridge) * r]),
+                               rcond=None)[0]
+        c = c @ _rotation(step[:3])
+        r = r + step[3:]
+    return c, r
+
+
+def _rotation(delta: np.ndarray) -> np.ndarray:
+    """exp([δ×]) by Rodrigues' formula (small δ safe)."""
+    ang = np.linalg.norm(delta)
+    kx = skew(delta)
+    return np.eye(3) + (np.sin(ang) / ang if ang > 0 else 1.0) * kx + \
+        ((1 - np.cos(ang)) / ang**2 if ang > 0 else 0.5) * (kx @ kx)
+
+
 def _fit_circle(f_ib0, t_win_s, t_end_s, latitude_rad):
     """The paper's space-circle fit (abstract, step 2; docs/swaying.md eq. 8): plane by SVD.
 
@@ -305,7 +410,13 @@ def _angles(c_b_n: np.ndarray) -> np.ndarray:
 
 
 def _gls_whitening(
-    f_win: np.ndarray, m_win: np.ndarray, cov_phi: np.ndarray, cov_acc: np.ndarray, t_end: float, lat: float
+    f_win: np.ndarray,
+    m_win: np.ndarray,
+    cov_phi: np.ndarray,
+    cov_acc: np.ndarray,
+    t_end: float,
+    lat: float,
+    lever: _LeverModel | None,
 ) -> np.ndarray:
     """Σ_f^(−1/2) of the GLS step (docs/swaying.md §6): Σ_f = S_f Σ_φ S_fᵀ + Σ_acc, plus the cone
     fit's residual power as white — sway that leaks through the smoothing is not noise, and the
@@ -313,8 +424,11 @@ def _gls_whitening(
     m = f_win.shape[0]
     s_f = _block_skew(f_win)
     sigma_f = s_f @ cov_phi[: 3 * m, : 3 * m] @ s_f.T + cov_acc
-    c0, _ = _fit_cone(f_win, m_win, t_end, lat)
-    res0 = f_win - m_win @ _earth_rotation_n0_to_nt(t_end, lat).T @ c0
+    if lever is None:
+        res0 = f_win - m_win @ _wahba(f_win, m_win).T
+    else:
+        c0, r0 = _fit_cone_lever(f_win, m_win, lever)
+        res0 = f_win - m_win @ c0.T - np.einsum("jik,k->ji", lever.g, r0)
     sigma_f += np.eye(3 * m) * np.mean(res0**2)
     return np.linalg.inv(np.linalg.cholesky(sigma_f))
 
@@ -327,39 +441,51 @@ def _solver(
     lat: float,
     whiten: np.ndarray | None,
     c_b_ib0_end: np.ndarray,
-) -> Callable[..., tuple[np.ndarray, np.ndarray]]:
-    """solve(f, dφ_end) → (C_b^n at the end, Earth axis in i_b0): the method's fit (docs/swaying.md §4:
-    cone eq. 6–7, circle eq. 8, GLS eq. 9) on smoothed specific forces `f`, with an optional small attitude
-    error dφ_end at the end (C = C_ib0^nt (I − [dφ×]) C_b^ib0); the Jacobians perturb both."""
+    lever: _LeverModel | None,
+) -> Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """solve(f, dφ_end) → (C_b^n at the end, Earth axis in i_b0, lever arm r [m]): the method's fit
+    (docs/swaying.md §4: cone eq. 6–7 with the lever arm of eq. 4a when `lever` is given, circle eq. 8,
+    GLS eq. 9 on F − G·r) on smoothed specific forces `f`, with an optional small attitude error dφ_end
+    at the end (C = C_ib0^nt (I − [dφ×]) C_b^ib0); the Jacobians perturb both."""
 
-    def solve(f: np.ndarray, dphi_end: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def solve(f: np.ndarray, dphi_end: np.ndarray | None = None):
+        r = np.zeros(3)
         if method == "circle":
             c_ib0_nt, axis = _fit_circle(f, t_win, t_end, lat)
-        else:
+        elif lever is None:
             c_ib0_nt, axis = _fit_cone(f, m_win, t_end, lat)
-            if method == "cone-gls":
-                c_ib0_nt, axis = _gls_step(f, m_win, c_ib0_nt, t_end, lat, whiten)
+        else:
+            c_n0_ib0, r = _fit_cone_lever(f, m_win, lever)
+            c_ib0_nt = _earth_rotation_n0_to_nt(t_end, lat) @ c_n0_ib0.T
+            axis = c_n0_ib0 @ np.array([0.0, np.cos(lat), np.sin(lat)])
+        if method == "cone-gls":
+            f_sway_free = f if lever is None else f - np.einsum("jik,k->ji", lever.g, r)
+            c_ib0_nt, axis = _gls_step(f_sway_free, m_win, c_ib0_nt, t_end, lat, whiten)
         tweak = np.eye(3) if dphi_end is None else np.eye(3) - skew(dphi_end)
-        return c_ib0_nt @ tweak @ c_b_ib0_end, axis
+        return c_ib0_nt @ tweak @ c_b_ib0_end, axis, r
 
     return solve
 
 
 def _angle_cov_parts(
-    solve: Callable[..., tuple[np.ndarray, np.ndarray]],
+    solve: Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]],
     f_win: np.ndarray,
     residual: np.ndarray | None,
     white: tuple[np.ndarray, np.ndarray],
-    cov_phi: np.ndarray,
-    cov_acc: np.ndarray,
+    total: tuple[np.ndarray, np.ndarray],
+    lever: _LeverModel | None,
+    rect_phi: np.ndarray,
 ) -> dict[str, np.ndarray]:
     """Covariance of (heading, pitch, roll) by source, linearised through the fit (docs/swaying.md
-    §5): white noise, the turn-on bias priors (total minus white), and the sway leakage."""
+    §5): white noise, the turn-on bias priors, the sway-rectified scale-factor asymmetry (`rect_phi`,
+    its part of the total attitude covariance) and the sway leakage."""
     g_map, jac_f = _jacobians(solve, f_win)
-    cov_leak = _leakage_covariance(residual, f_win, cov_phi, cov_acc)
+    cov_phi, cov_acc = total
+    cov_leak = _leakage_covariance(residual, f_win, cov_phi, cov_acc, lever)
     return {
         "white_noise": _angles_cov(g_map, jac_f, *white),
-        "bias_prior": _angles_cov(g_map, jac_f, cov_phi - white[0], cov_acc - white[1]),
+        "bias_prior": _angles_cov(g_map, jac_f, cov_phi - white[0] - rect_phi, cov_acc - white[1]),
+        "sf_asymmetry": g_map @ rect_phi @ g_map.T,
         "sway_leakage": jac_f @ cov_leak @ jac_f.T,
     }
 
@@ -376,9 +502,11 @@ def _diagnostics(
     axis_elevation_deg: float,
     residual: np.ndarray | None,
     parts: dict[str, np.ndarray],
+    lever_m: np.ndarray | None,
 ) -> dict[str, Any]:
     """What the solution was computed from (docs/swaying.md §5): samples, windows, the noise
-    densities measured from the data, the fit residual and the heading σ by source."""
+    densities measured from the data, the fit residual, the estimated lever arm (None: not estimated)
+    and the heading σ by source."""
     return {
         "n_samples": n,
         "lost_samples_filled": n_lost,
@@ -392,6 +520,7 @@ def _diagnostics(
         "fit_residual_rms_ug": (float(np.sqrt(np.mean(residual**2))) / STANDARD_GRAVITY_M_S2 * 1e6
                                 if residual is not None else None),
         "heading_std_parts_deg": {k: float(np.sqrt(max(v[0, 0], 0.0))) for k, v in parts.items()},
+        "lever_arm_m": None if lever_m is None else lever_m.tolist(),
     }
 
 
@@ -474,6 +603,8 @@ def align_swaying(
     accel_bias_ug: float = 0.0,
     gyro_range_dps: float = KVH_GYRO_RANGE_DPS,
     accel_range_g: float = KVH_ACCEL_RANGE_G,
+    lever_arm_std_m: float = LEVER_ARM_STD_M,
+    gyro_sf_asymmetry_ppm: float = 0.0,
 ) -> SwayingSolution:
     """Heading, pitch, roll of a strapdown IMU on a swaying base at the end of the window.
 
@@ -484,7 +615,11 @@ def align_swaying(
     GLS step, the batch form of a Kalman fine alignment), "circle" (the paper's free circle fit).
     `max_sway_period_s` sets the smoothing window (4 periods) that rejects sway;
     `gyro_bias_dph` / `accel_bias_ug` are 1σ priors of the turn-on biases (they cannot be
-    separated from north and are only added to the reported 1σ; 0 = white noise only).
+    separated from north and are only added to the reported 1σ; 0 = white noise only);
+    `gyro_sf_asymmetry_ppm` the 1σ scale-factor asymmetry, whose rectified sway is one more such bias.
+    `lever_arm_std_m`: 1σ prior per axis of the IMU's lever arm from the point the ship turns about;
+    the cone fits estimate the arm from the sway (docs/swaying.md eq. 4a) and remove its acceleration;
+    0 = not estimated (the fit before issue 16). The estimate is `diagnostics["lever_arm_m"]`.
     Raises InputError for input that cannot give a meaningful heading.
     """
     rate, accel_g, peak_dps = _checked_inputs(
@@ -509,20 +644,26 @@ def align_swaying(
     # noise measured from the data (docs/swaying.md §5): it weights the GLS step and gives the 1σ
     n_gyro = white_noise_density(dtheta, dt)  # rad/√s per body axis
     n_acc = white_noise_density(dv, dt)  # m/s/√s per body axis
-    cov_phi, cov_acc = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc,
-                                          gyro_bias_dph * DPH, accel_bias_ug * 1e-6 * STANDARD_GRAVITY_M_S2)
-    whiten = _gls_whitening(f_win, m_win, cov_phi, cov_acc, t_end, lat) if method == "cone-gls" else None
-    solve = _solver(method, m_win, t_win, t_end, lat, whiten, c_b_ib0_end)
-    c_b_n, axis = solve(f_win)
+    rect = _sway_rectified_bias_rad_s(rate, gyro_sf_asymmetry_ppm)
+    cov_phi, cov_acc = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias_dph * DPH,
+                                          accel_bias_ug * 1e-6 * STANDARD_GRAVITY_M_S2, rect)
+    lever = _lever_model(q, starts, h, dt, f_win, cov_phi, cov_acc, lever_arm_std_m) \
+        if method != "circle" else None
+    whiten = _gls_whitening(f_win, m_win, cov_phi, cov_acc, t_end, lat, lever) \
+        if method == "cone-gls" else None
+    solve = _solver(method, m_win, t_win, t_end, lat, whiten, c_b_ib0_end, lever)
+    c_b_n, axis, lever_m = solve(f_win)
     angles = _angles(c_b_n)
     residual = f_win - (c_b_ib0_end @ c_b_n.T @ _earth_rotation_n0_to_nt(t_end, lat) @ m_win.T).T \
-        if method != "circle" else None
+        - (0.0 if lever is None else np.einsum("jik,k->ji", lever.g, lever_m)) if method != "circle" else None
     white = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, 0.0, 0.0)
-    parts = _angle_cov_parts(solve, f_win, residual, white, cov_phi, cov_acc)
+    rect_phi = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, 0.0, 0.0, rect)[0] - white[0]
+    parts = _angle_cov_parts(solve, f_win, residual, white, (cov_phi, cov_acc), lever, rect_phi)
     std = np.sqrt(np.maximum(np.diag(sum(parts.values())), 0.0))
     diag = _diagnostics(
         n, n_lost, rate_hz, lw * dt, len(starts), n_gyro, n_acc, peak_dps,
         float(np.arcsin(np.clip(axis @ c_b_ib0_end @ c_b_n[2], -1, 1)) / DEG), residual, parts,
+        None if lever is None else lever_m,
     )
     return SwayingSolution(
         heading_deg=float(angles[0]),
@@ -656,7 +797,7 @@ def _smooth_windows(dv_ib0, starts, h, dt, lat, g):
     return f_win, m_win, t_win
 
 
-def _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias, accel_bias):
+def _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias, accel_bias, rect_bias=None):
     """Covariances of the noise the windows see (docs/swaying.md §5), all in i_b0 axes.
 
     The attitude random walk φ(t) driven by the gyro white noise has Cov(φ(s), φ(t)) = Q·min(s,t);
@@ -664,7 +805,9 @@ def _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias,
     Cov(Φ_i, Φ_j) = Q·∫H_i H_j dτ with H_j(τ) = ∫_τ^T h_j (tail integral), because
     min(s,t) = ∫ 1[τ<s]·1[τ<t] dτ; the end attitude sees φ(t_end) (H = 1 up to t_end).
     The accelerometer white noise gives Cov(A_i, A_j) = Q_a·∫h_i h_j dt, its bias prior a
-    constant. Returns (cov_phi [3(m+1)]², cov_acc [3m]²); the last block of cov_phi is φ(t_end).
+    constant. `rect_bias` [rad/s]: per body axis, a further constant gyro bias 1σ (the sway-rectified
+    scale-factor asymmetry, `_sway_rectified_bias_rad_s`). Returns (cov_phi [3(m+1)]², cov_acc [3m]²);
+    the last block of cov_phi is φ(t_end).
     """
     m = starts.size
     lw = h.size
@@ -674,6 +817,8 @@ def _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias,
     qg = np.einsum("kij,j,klj->il", c, n_gyro**2, c) / c.shape[0]
     qa = np.einsum("kij,j,klj->il", c, n_acc**2, c) / c.shape[0]
     qb = np.eye(3) * gyro_bias**2
+    if rect_bias is not None:
+        qb = qb + np.einsum("kij,j,klj->il", c, rect_bias**2, c) / c.shape[0]
     qab = np.eye(3) * accel_bias**2
     # Kernels on a coarse grid of D samples (≥ 40 cells per window) for the Brownian covariance.
     d = max(1, lw // 40)
@@ -707,11 +852,7 @@ def _gls_step(f_win, m_n0, c_ib0_nt, t_end_s, lat, whiten):
     aw = whiten @ a
     rw = whiten @ r
     delta = np.linalg.lstsq(aw, rw, rcond=None)[0]
-    ang = np.linalg.norm(delta)
-    kx = skew(delta)
-    rot = np.eye(3) + (np.sin(ang) / ang if ang > 0 else 1.0) * kx + \
-        ((1 - np.cos(ang)) / ang**2 if ang > 0 else 0.5) * (kx @ kx)
-    c_n0_ib0 = c_n0_ib0 @ rot
+    c_n0_ib0 = c_n0_ib0 @ _rotation(delta)
     axis = c_n0_ib0 @ np.array([0.0, np.cos(lat), np.sin(lat)])
     return r_nt @ c_n0_ib0.T, axis
 
@@ -753,17 +894,39 @@ def _propagate(solve, f_win, cov_phi, cov_acc):
     return np.sqrt(np.maximum(np.diag(_angles_cov(g_map, jac_f, cov_phi, cov_acc)), 0.0))
 
 
-def _leakage_covariance(residual, f_win, cov_phi, cov_acc):
+def _residual_dof(f_win: np.ndarray, u: np.ndarray, lever: _LeverModel | None) -> tuple[float, float]:
+    """Degrees of freedom the cone fit leaves in its residual across and along the windows' verticals u_j.
+
+    The fit's linearised design is [−[F_j×] | G_j] (three rotation angles, and the lever arm when it is
+    estimated, with its ridge Λ); for errors of equal power p per component the residual keeps
+    p·tr(S(I − H)) along a block projector S, H = A(AᵀA + Λ)⁺Aᵀ the hat matrix. Rotations move F_j only
+    across it, so without the lever arm this is (2m − 3, m)."""
+    m = f_win.shape[0]
+    a = np.concatenate([-skew(fj) for fj in f_win])
+    ridge = np.zeros(3)
+    if lever is not None:
+        a = np.hstack([a, lever.g.reshape(-1, 3)])
+        ridge = np.concatenate([ridge, np.full(3, lever.ridge)])
+    s_along = np.zeros((3 * m, 3 * m))
+    for j in range(m):
+        s_along[3 * j: 3 * j + 3, 3 * j: 3 * j + 3] = np.outer(u[j], u[j])
+    inv = np.linalg.pinv(a.T @ a + np.diag(ridge))
+    h_along = float(np.trace(inv @ a.T @ s_along @ a))
+    h_all = float(np.trace(inv @ a.T @ a))
+    return 2.0 * m - (h_all - h_along), m - h_along
+
+
+def _leakage_covariance(residual, f_win, cov_phi, cov_acc, lever):
     """Covariance of what the windows carry beyond the modelled errors: sway leakage (and any other
     unmodelled error — scale factor, misalignment — that the cone fit leaves in its residual), measured
     from the data.
 
     Split along each window's specific force u_j = F_j/|F_j| (≈ the vertical, where heave leaks and
     heading is not) and across it (where the heading is): per part, the residual power corrected for
-    the fitted parameters (2 of 3 across, 1 along) minus what the modelled noise and bias priors put
-    there, and Cov_j = p_across·(I − u_j u_jᵀ) + p_along·u_j u_jᵀ, independent from window to window
-    (choices measured against the Monte Carlo scatter in docs/swaying.md §5). Zero for the circle fit
-    (no residual model) or where the modelled errors explain the residual.
+    the fitted parameters (`_residual_dof`: the rotation and the lever arm) minus what the modelled noise
+    and bias priors put there, and Cov_j = p_across·(I − u_j u_jᵀ) + p_along·u_j u_jᵀ, independent from
+    window to window (choices measured against the Monte Carlo scatter in docs/swaying.md §5). Zero for
+    the circle fit (no residual model) or where the modelled errors explain the residual.
     """
     m = f_win.shape[0]
     if residual is None or m < 2:
@@ -775,8 +938,9 @@ def _leakage_covariance(residual, f_win, cov_phi, cov_acc):
     along_model = float(np.mean(np.einsum("ji,jik,jk->j", u, blocks, u)))
     across_model = float(np.mean(np.trace(blocks, axis1=1, axis2=2))) - along_model
     r_along = np.einsum("ji,ji->j", residual, u)
-    p_along = float(np.sum(r_along**2)) / max(m - 1, 1) - along_model
-    p_across = (float(np.sum(residual**2) - np.sum(r_along**2)) / max(2 * m - 2, 1)) - across_model / 2.0
+    dof_across, dof_along = _residual_dof(f_win, u, lever)
+    p_along = float(np.sum(r_along**2)) / max(dof_along, 1.0) - along_model
+    p_across = float(np.sum(residual**2) - np.sum(r_along**2)) / max(dof_across, 1.0) - across_model / 2.0
     p_across, p_along = max(p_across, 0.0), max(p_along, 0.0)
     out = np.zeros((3 * m, 3 * m))
     for j in range(m):

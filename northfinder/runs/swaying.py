@@ -404,15 +404,17 @@ def compute_swaying_result(
 def sigma_covers(prior: dict[str, float]) -> dict[str, Any]:
     """What the reported 1σ includes and what it does not (the summary prints both)."""
     covers = ["white gyro and accelerometer noise (measured)",
+              "the IMU's lever arm from the sway centre: estimated with the heading and its sway removed",
               "sway leakage and other errors left in the cone fit's residual (measured)"]
-    omits = ["scale-factor and misalignment errors that mimic the Earth-rate cone",
-             "sway leakage the cone fit absorbs into the angles (not in its residual): on the reference "
-             "sway ≈0.10° at 120 s, ≈0.01° at 300 s — use ≥ 300 s where the σ must hold"]
+    omits = ["scale-factor and misalignment errors that mimic the Earth-rate cone"]
     if prior:
         covers.append(f"gyro bias floor of the grade ({prior['gyro_bias_dph']:g} °/h, "
                       f"accelerometer {prior['accel_bias_ug']:g} µg, 1σ)")
+        covers.append(f"the bias the sway rectifies through the grade's gyro scale-factor asymmetry "
+                      f"({prior['gyro_sf_asymmetry_ppm']:g} ppm, 1σ)")
     else:
-        omits.append("the gyro bias floor εE/(Ωe·cos L): the IMU grade is not known")
+        omits.append("the gyro bias floor εE/(Ωe·cos L) and the sway-rectified scale-factor asymmetry: "
+                     "the IMU grade is not known")
     return {"covers": covers, "omits": omits}
 
 
