@@ -335,6 +335,37 @@ def test_hold_ends_with_the_first_acceleration(data):
     assert released["force"] < released["speed only"]
 
 
+@pytest.mark.parametrize("psi_deg", [0.0, 37.0, 200.0])
+def test_level_prior_ties_the_tilt_to_the_accelerometer_bias(psi_deg):
+    """After a coarse level the INS's horizontal specific force is zero by construction, so its error
+    (tilt and bias: the filter's velocity rows) may only carry the accelerometer noise averaged over the
+    window, VRW²/T per axis, while tilt and bias each keep a wide marginal; before, tilt and bias were
+    independent (σ of that force 0.086 m/s², 170× the noise) and the still start's updates moved the
+    tilt on GNSS noise."""
+    from northfinder.align.gnss_ins import SinCosFilter
+    from northfinder.rotations import dcm_from_euler
+
+    cfg = GnssAlignConfig.for_imu_grade("kvh1760", heading_std_deg=10.0)
+    c0 = dcm_from_euler(math.radians(psi_deg), math.radians(1.5), math.radians(-2.0))
+    f_level = c0.T @ np.array([0.0, 0.0, 9.80])  # a still vehicle's specific force in body axes
+    ins = Strapdown(NavState(np.zeros(3), np.zeros(3), c0), 250.0, LocalLevel(math.radians(40.0), 0.0, 0.0))
+    flt = SinCosFilter(ins, cfg, math.radians(psi_deg))
+    before = flt.P.copy()
+    flt.level_prior(f_level, 5.0)
+    h = np.zeros((2, flt.n))
+    h[:, flt.A] = flt.attitude_jacobian(f_level)[0:2]
+    h[:, flt.A.start:flt.A.start + 2] = 0.0  # the heading's part is what motion is to show
+    h[:, flt.BA] = c0[0:2]
+    sd_noise = 120e-6 * 9.80665 / math.sqrt(5.0)
+    force_cov = h @ flt.P @ h.T
+    print(f"\nhorizontal force σ {np.sqrt(np.diag(h @ before @ h.T))} → {np.sqrt(np.diag(force_cov))} m/s²")
+    np.testing.assert_allclose(force_cov, np.eye(2) * sd_noise**2, atol=1e-3 * sd_noise**2)
+    np.testing.assert_array_equal(flt.P[flt.BA, flt.BA], before[flt.BA, flt.BA])
+    tilt_sd_deg = np.degrees(np.sqrt(np.diag(flt.P)[flt.A.start + 2:flt.A.start + 4]))
+    assert np.all(tilt_sd_deg > 0.04)  # the bias's 1 mg over g: the tilt alone is not known
+    assert np.linalg.eigvalsh(flt.P).min() > -1e-15
+
+
 PYINS_T1_S = {10.0: 2.0, 45.0: 3.4, 90.0: 8.3, 180.0: 12.4}
 """Issue 16: python-ins (pyins 1.0.1) on the same kind of recorded drive, time to < 1° after motion."""
 

@@ -490,6 +490,33 @@ class _ErrorStateFilter:
         """Rows of the heading states held (not estimated) while standing still; None: not held."""
         return None
 
+    def tilt_rows(self) -> slice | None:
+        """Rows of the two tilt states (level_prior); None: the filter keeps independent priors."""
+        return None
+
+    def level_prior(self, f_level_b_m_s2: np.ndarray, level_s: float) -> None:
+        """The tilt prior a coarse level leaves: correlated with the accelerometer bias, not independent.
+
+        Levelled on the mean specific force f̄ of a still window, the INS's horizontal specific force is
+        zero by construction, so its error δC·f̄ + Ĉδf (tilt and bias; the filter's velocity rows) is only
+        the accelerometer noise averaged over the window, VRW²/T per axis — whatever the bias. With the
+        bias prior P_b: ε = −A⁻¹(B δf) + A⁻¹n (A, B: those rows' tilt and bias columns), i.e.
+        P_εε = A⁻¹(B P_b Bᵀ + Σ_n)A⁻ᵀ, P_εf = −A⁻¹B P_b. Independent priors (tilt 0.5°, bias 1 mg) let the
+        still start's velocity updates move the tilt on GNSS noise (3 mg of horizontal force after 5 s),
+        which the first accelerations then read as heading error."""
+        tilt = self.tilt_rows()
+        if tilt is None:
+            return
+        jac = self.attitude_jacobian(f_level_b_m_s2)[0:2]
+        a = jac[:, tilt.start - self.A.start : tilt.stop - self.A.start]
+        b = self.ins.state.c_bn[0:2]
+        a_inv = np.linalg.inv(a)
+        p_b = self.P[self.BA, self.BA]
+        sd_n = self.cfg.accel_vrw_ug_sqrt_hz * 1e-6 * STANDARD_GRAVITY_M_S2 / math.sqrt(level_s)
+        self.P[tilt, tilt] = a_inv @ (b @ p_b @ b.T + np.eye(2) * sd_n**2) @ a_inv.T
+        self.P[tilt, self.BA] = -a_inv @ b @ p_b
+        self.P[self.BA, tilt] = self.P[tilt, self.BA].T
+
     def feedback(self, x: np.ndarray) -> None:
         """Paper eq 23: every estimate corrects the INS and the sensors; the error state resets to 0
         (but for what the attitude correction could not apply, see SinCosFilter.attitude_feedback)."""
@@ -651,6 +678,10 @@ class SinCosFilter(_ErrorStateFilter):
         """η1, η2."""
         return slice(self.A.start, self.A.start + 2)
 
+    def tilt_rows(self) -> slice:
+        """εx, εy."""
+        return slice(self.A.start + 2, self.A.start + 4)
+
     def heading_var(self) -> float:
         """Var of sin δψ = ĉη1 − ŝη2 (≈ δψ once small)."""
         psi, _ = _heading_split(self.ins.state.c_bn)
@@ -698,6 +729,7 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
     ins = Strapdown(state, rate, origin)
     ins._prev_dtheta, ins._prev_dv = dth[k_cur - 1].copy(), dv[k_cur - 1].copy()
     flt = filter_cls(ins, cfg, psi0)
+    flt.level_prior(dv[:k_level].mean(axis=0) * rate, cfg.level_s)
     # The INS position starts at the first fix minus Ĉ l̂a, so δP0 = −δC·l̂a − Ĉ·δla + n0 (eq 17 read
     # backwards): correlated with the attitude and lever-arm errors, not independent of them.
     j_att = flt.attitude_jacobian(la0)
