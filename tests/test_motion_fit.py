@@ -93,7 +93,8 @@ def test_the_sweep_cancels_the_misalignment_by_closing_its_path():
     assert abs(ignored[0]) < 0.02 * sigma, ignored
     assert abs(full[0]) < 0.02 * sigma, full
     sch = P.schedule(sweep, stage, 0.02)
-    a_mat, names = motion_design(sch.alpha_deg, sch.omega_dps, ("x", "y"))
+    used = sch.gyro_used  # what the fit sees: the first rest to the rest after the return
+    a_mat, names = motion_design(sch.alpha_deg[used], sch.omega_dps[used], ("x", "y"))
     cols = a_mat / np.linalg.norm(a_mat, axis=0)
     gram = cols.T @ cols
     d = [names.index("d_x"), names.index("d_y")]

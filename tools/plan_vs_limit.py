@@ -153,16 +153,15 @@ def headings_positions(sch, gyro, accel, sensor, lat):
 
 
 def headings_motion(sch, gyro, accel, sensor, lat, terms=("misalignment",)):
-    """Every sample at its z-gyro angle pinned to the encoder at rest (eq M1–M4)."""
-    enc = _encoder(sch)
-    # the accelerometer: at rest between moves (its CAN node restarts), all the time in a sweep
-    acc = np.ones_like(sch.rest) if sch.rest.sum() < 0.5 * sch.rest.size else sch.rest
-    used = sch.gyro_used  # as the run: from the first dwell on (nothing pins the angle before it)
+    """Every sample at its z-gyro angle pinned to the encoder at rest (eq M1–M4), as the run: from
+    the first rest on (a sweep first turns to it), the tilt from the accelerometer at rest."""
+    first = int(np.argmax(sch.rest))
+    enc, acc, used = _encoder(sch)[first:], sch.rest[first:], sch.gyro_used[first:]
     out = np.empty(gyro.shape[0])
     for t in range(gyro.shape[0]):
-        alpha, omega = table_angle_from_z(gyro[t, :, 2], sch.dt_s, enc)
-        up = _up_vector(alpha[acc], accel[t : t + 1, acc], lat)[0]
-        fit = fit_motion(alpha[used], omega[used], gyro[t, used, :2], ("x", "y"), terms=terms)
+        alpha, omega = table_angle_from_z(gyro[t, first:, 2], sch.dt_s, enc)
+        up = _up_vector(alpha[acc], accel[t : t + 1, first:][:, acc], lat)[0]
+        fit = fit_motion(alpha[used], omega[used], gyro[t, first:][used, :2], ("x", "y"), terms=terms)
         out[t] = heading_from_rates(fit.coef("v_x")[0], fit.coef("v_y")[0], up, lat)[0]
     return out
 

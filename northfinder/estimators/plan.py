@@ -190,12 +190,14 @@ def schedule(spec: PlanSpec, stage: Stage, dt_s: float = 0.1) -> Schedule:
     angles, [turnaround, move of 360°/n] between, then the turnaround, the return move and its
     settle; positions+motion: the same, every sample from the first dwell's start to the rest after
     the return used (the run's fit pins the table angle at the dwells and at that rest); sweep: the
-    same at the rests of `sweep_targets_deg`, whose moves are 360° plus the step."""
+    same at the rests of `sweep_targets_deg`, whose moves are 360° plus the step. Every plan starts
+    at 0° (the start angle, where the stage stands): a sweep first turns to its first rest at −360°."""
     b = _Builder(dt_s)
     v, a = stage.speed_deg_s, stage.accel_deg_s2
     targets = _targets(spec)
     motion = spec.kind != "positions"
-    b.angle = targets[0]
+    if targets[0]:
+        b.move(targets[0], v, a, False)
     b.hold(stage.settle_s, False)
     for i in range(spec.n):
         if i:
@@ -350,7 +352,7 @@ def sweep_dwell_for(elapsed_s: float, n: int, stage: Stage) -> float:
 
 def _dwell_for(elapsed_s: float, targets: list[float], stage: Stage) -> float:
     n = len(targets)
-    fixed = n * stage.settle_s + (n - 1) * stage.turnaround_s
+    fixed = move_time_s(targets[0], stage) + n * stage.settle_s + (n - 1) * stage.turnaround_s
     fixed += sum(move_time_s(b - a, stage) for a, b in zip(targets[:-1], targets[1:], strict=True))
     if stage.return_to_start:
         fixed += stage.turnaround_s + move_time_s(targets[-1] - targets[0], stage) + stage.settle_s
