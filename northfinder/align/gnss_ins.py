@@ -189,10 +189,6 @@ class GnssAlignConfig:
     still_force_sigmas: float = 4.0
     """Standing also needs the IMU's horizontal specific force (heading aside) within this many σ of
     zero: the heading becomes observable with the first acceleration, before the fix speed shows it."""
-    iterate_deg: float = 1.0
-    """A sin/cos update that moves the heading by more than this is done again about the new heading
-    (iterated EKF, at most `max_iterations` more times): the first updates after a large error."""
-    max_iterations: int = 4
     noise_source: str = "default"
     """Where the IMU noise and bias figures came from: "default" (the conservative figures above, for
     an IMU whose grade is not known) or "grade <name>" (IMU_GRADES, `for_imu_grade`)."""
@@ -421,11 +417,6 @@ class _ErrorStateFilter:
     def update(self, pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s: float) -> np.ndarray:
         """GNSS antenna position and velocity update with the lever arm (paper eq 15–21), then
         feedback of every estimate (eq 23). Returns the innovation [6]."""
-        return self._update_once(pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s)[0]
-
-    def _update_once(self, pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s: float):
-        """One linearized update and feedback. Returns the innovation, the posterior error-state mean
-        before feedback, and the reset Jacobian g that maps errors about the old estimate to the new."""
         st = self.ins.state
         c = st.c_bn
         la = self.lever_arm_b_m
@@ -467,7 +458,7 @@ class _ErrorStateFilter:
         g[P_, self.LA] += c_old - self.ins.state.c_bn
         g[self.A, self.A] = g_att
         self.P = g @ self.P @ g.T
-        return z, x, g
+        return z
 
     def accelerating(self) -> bool:
         """The last chunk's horizontal specific force is beyond `still_force_sigmas` of what tilt, bias
@@ -502,7 +493,7 @@ class _ErrorStateFilter:
         the accelerometer noise averaged over the window, VRW²/T per axis — whatever the bias. With the
         bias prior P_b: ε = −A⁻¹(B δf) + A⁻¹n (A, B: those rows' tilt and bias columns), i.e.
         P_εε = A⁻¹(B P_b Bᵀ + Σ_n)A⁻ᵀ, P_εf = −A⁻¹B P_b. Independent priors (tilt 0.5°, bias 1 mg) let the
-        still start's velocity updates move the tilt on GNSS noise (3 mg of horizontal force after 5 s),
+        still start's velocity updates move the tilt on GNSS noise (up to 3 mg of horizontal force after 5 s),
         which the first accelerations then read as heading error."""
         tilt = self.tilt_rows()
         if tilt is None:
@@ -650,29 +641,6 @@ class SinCosFilter(_ErrorStateFilter):
             p_u = w @ p_la @ w.T
             out[rows, rows] = sum(p_u[i, j] * jac[i] @ p_att @ jac[j].T for i in range(3) for j in range(3))
         return out
-
-    def update(self, pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s: float) -> np.ndarray:
-        """The update, iterated (IEKF) while it moves the heading by more than `iterate_deg`.
-
-        η is exact in δC, but the lever arm, tilt and bias corrections of an update that turns the
-        heading by tens of degrees were computed about the old heading (the δC·δla products, ε's frame,
-        F's heading terms). Each iteration expresses the same prior in the errors about the newest
-        estimate — mean g·(m − x̂⁺) + remainder, covariance G P⁻ Gᵀ with G the product of the reset
-        Jacobians — and updates with the same fix again, so the first updates from a large error do
-        not leave those states where the old heading put them."""
-        m, p_prior = self.x.copy(), self.P.copy()
-        psi = _heading_split(self.ins.state.c_bn)[0]
-        z, x_post, g = self._update_once(pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s)
-        m, g_tot = g @ (m - x_post) + self.x, g
-        for _ in range(self.cfg.max_iterations):
-            psi_new = _heading_split(self.ins.state.c_bn)[0]
-            if abs(math.remainder(psi_new - psi, 2.0 * math.pi)) <= math.radians(self.cfg.iterate_deg):
-                break
-            psi = psi_new
-            self.x, self.P = m, g_tot @ p_prior @ g_tot.T
-            _, x_post, g = self._update_once(pos_m, vel_m_s, pos_std_m, vel_std_m_s, dt_fix_s)
-            m, g_tot = g @ (m - x_post) + self.x, g @ g_tot
-        return z
 
     def heading_rows(self) -> slice:
         """η1, η2."""
