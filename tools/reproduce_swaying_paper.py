@@ -34,6 +34,7 @@ from firmware_sim.physics.table import TableMotion  # noqa: E402
 from firmware_sim.physics.world import Sinusoid, Site, SwayingPlatform, World  # noqa: E402
 from northfinder.align.coarse import coarse_align  # noqa: E402
 from northfinder.align.swaying import (  # noqa: E402
+    GRADE_SF_ASYMMETRY_PPM,
     align_swaying,
     attitude_quaternions,
     predicted_heading_std_deg,
@@ -98,7 +99,8 @@ def estimate(method: str, gyro, accel, rate_hz: float, duration_s: float, grade:
     period = min(10.0, duration_s / 8.0)
     accel_bias_ug = float(np.sqrt(np.mean(np.square(ACCEL_PRESETS[grade].bias_ug))))
     s = align_swaying(g, a, rate_hz, LAT_DEG, method=method, max_sway_period_s=period,
-                      gyro_bias_dph=bias_1sigma_dph(grade), accel_bias_ug=accel_bias_ug)
+                      gyro_bias_dph=bias_1sigma_dph(grade), accel_bias_ug=accel_bias_ug,
+                      gyro_sf_asymmetry_ppm=GRADE_SF_ASYMMETRY_PPM[grade])
     return s.heading_deg, s.heading_std_deg
 
 

@@ -8,9 +8,11 @@ the improvements documented in docs/swaying.md:
    propagate C_b^{i_b0}(t) from the gyro delta angles with a coning correction — a log-depth
    parallel-prefix quaternion product, no per-sample Python loop;
 2. carry the specific force into i_b0 as velocity increments (rotation + sculling compensated)
-   and smooth them with a Blackman–Harris kernel that rejects the periodic sway, heave and
-   lever-arm accelerations; in i_b0 the smoothed specific force is gravity turning on a cone
-   about the Earth's axis (paper abstract, step 2);
+   and smooth them with a Blackman–Harris kernel that rejects the periodic sway and heave; in i_b0
+   the smoothed specific force is gravity turning on a cone about the Earth's axis (paper abstract,
+   step 2) plus the IMU's lever-arm term, whose sway products beat slowly enough to pass the kernel:
+   it is linear in the arm with a kernel known from step 1 (docs/swaying.md eq. 4a), and the cone
+   fits estimate the arm with the heading;
 3. fit that cone: ``method="cone"`` (default) solves Wahba's problem between the smoothed
    vectors and the known cone (half-angle 90° − L, rate Ωe) — three unknowns; ``"cone-gls"``
    adds one generalized-least-squares step weighted by the measured noise (the optional fine
@@ -364,9 +366,11 @@ def _lever_kernels(q: np.ndarray, starts: np.ndarray, h: np.ndarray, dt: float) 
 
 
 def _fit_cone_lever(f_ib0, m_n0, lever: _LeverModel, iterations: int = 3):
-    """Cone fit with the lever arm r estimated with it (eq. 6 amended by 4a): min Σ|F_j − C·M_j − G_j·r|²
-    + ridge·|r|². Gauss–Newton from the Wahba solution on (δ, r), C ← C·exp([δ×]): r enters linearly,
-    the rotation is sub-degree, so three steps converge. Returns (C_{n0}^{i_b0}, r [m])."""
+    """Cone fit with the lever arm r estimated with it (docs/swaying.md eq. 6 amended by eq. 4a, which
+    amends the paper's step 2 — the specific force carried into i_b0 is gravity on the cone plus the
+    arm's d²(C_b^{i_b0}·r)/dt², not gravity alone): min Σ|F_j − C·M_j − G_j·r|² + ridge·|r|².
+    Gauss–Newton from the Wahba solution on (δ, r), C ← C·exp([δ×]): r enters linearly, the rotation
+    is sub-degree, so three steps converge. Returns (C_{n0}^{i_b0}, r [m])."""
     c = _wahba(f_ib0, m_n0)
     r = np.zeros(3)
     prior = np.hstack([np.zeros((3, 3)), np.sqrt(lever.ridge) * np.eye(3)])
@@ -654,8 +658,10 @@ def align_swaying(
     solve = _solver(method, m_win, t_win, t_end, lat, whiten, c_b_ib0_end, lever)
     c_b_n, axis, lever_m = solve(f_win)
     angles = _angles(c_b_n)
-    residual = f_win - (c_b_ib0_end @ c_b_n.T @ _earth_rotation_n0_to_nt(t_end, lat) @ m_win.T).T \
-        - (0.0 if lever is None else np.einsum("jik,k->ji", lever.g, lever_m)) if method != "circle" else None
+    residual = None  # the circle fit has no residual model
+    if method != "circle":
+        cone = (c_b_ib0_end @ c_b_n.T @ _earth_rotation_n0_to_nt(t_end, lat) @ m_win.T).T
+        residual = f_win - cone - (0.0 if lever is None else np.einsum("jik,k->ji", lever.g, lever_m))
     white = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, 0.0, 0.0)
     rect_phi = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, 0.0, 0.0, rect)[0] - white[0]
     parts = _angle_cov_parts(solve, f_win, residual, white, (cov_phi, cov_acc), lever, rect_phi)
