@@ -7,8 +7,9 @@ Part 1: `--runs` finds with `northfinder find --simulate` defaults (8 × 20 s, e
 on: misalignment, scale-factor asymmetry, g-sensitivity, wobble, speed ripple), seeds seed0…; each
 run gives both plans on the same data: the dwell means (plan "positions") and every sample
 (plan "positions+motion"). Per plan: the mean error (bias), the rms error, the mean reported σ,
-and σ over the white-noise limit of the elapsed time (the IMU stream from the first dwell's start
-to the last dwell's end, and from the first dwell's start to the end of the return and its settle).
+and σ over the white-noise limit of the elapsed time: of the fit's span (the first dwell's start to
+the rest after the return), of the IMU stream from the first dwell's start to its end, and of the
+plan model's elapsed time (from the start angle: a sweep's turn to its first rest included).
 Part 2: `--runs` finds with `--target-std`: the plan the model chose, its predicted σ and elapsed
 time against what the runs reported.
 Part 3: `--runs` sweeps (`find --simulate --plan sweep`, `--sweep-rests` rests) whose dwell the plan
@@ -61,13 +62,24 @@ def limit_deg(grade: str, elapsed_s: float, lat: float, tilt_deg: float) -> floa
     return float(noise_limit_heading_std_deg(GRADES[grade].arw_deg_rt_h, elapsed_s, lat, tilt_deg, 90.0, 2))
 
 
-def summarize(name: str, err: np.ndarray, std: np.ndarray, lim_span: np.ndarray, lim_stream: np.ndarray
-              ) -> None:
+def summarize(name: str, err: np.ndarray, std: np.ndarray, lim_span: np.ndarray, lim_stream: np.ndarray,
+              lim_planned: float) -> None:
     rms = float(np.sqrt(np.mean(err**2)))
     print(f"{name:18s} bias {np.mean(err):+.4f}° (±{np.std(err, ddof=1) / math.sqrt(len(err)):.4f})  "
           f"rms err {rms:.4f}°  mean σ {np.mean(std):.4f}°  "
           f"rms |err|/σ {np.sqrt(np.mean((err / std) ** 2)):.2f}  "
-          f"σ/limit: fit span {np.mean(std / lim_span):.3f}, with the return {np.mean(std / lim_stream):.3f}")
+          f"σ/limit: fit span {np.mean(std / lim_span):.3f}, "
+          f"first dwell → end {np.mean(std / lim_stream):.3f}, "
+          f"planned elapsed {np.mean(std) / lim_planned:.3f}")
+
+
+def planned_limit_deg(args, spec) -> tuple[float, float]:
+    """(the plan model's elapsed time of `spec` — from the start angle, the turn to the first rest
+    included —, the limit of it) at the bench's 2° tilt."""
+    from northfinder.estimators import plan as P
+
+    elapsed = P.predict(spec, GRADES[args.grade], args.latitude, 2.0, P.Stage()).elapsed_s
+    return elapsed, limit_deg(args.grade, elapsed, args.latitude, 2.0)
 
 
 def spans(args, r: dict, run_dir: Path) -> tuple[float, float, float, float]:
@@ -97,9 +109,13 @@ def part1(args, tmp: Path) -> None:
               f"stream {stream:.1f} s, "
               f"misalignment {m['misalignment_dph_per_dps']}", flush=True)
     a = np.array(rows)
-    print(f"\n{args.runs} runs, {args.grade}, {args.latitude}° N, 8 × 20 s (find --simulate defaults):")
-    summarize("positions", a[:, 0], a[:, 1], a[:, 4], a[:, 5])
-    summarize("positions+motion", a[:, 2], a[:, 3], a[:, 4], a[:, 5])
+    from northfinder.estimators.plan import PlanSpec
+
+    elapsed, lim = planned_limit_deg(args, PlanSpec("positions+motion", 8, 20.0))
+    print(f"\n{args.runs} runs, {args.grade}, {args.latitude}° N, 8 × 20 s (find --simulate defaults, "
+          f"planned {elapsed:.0f} s):")
+    summarize("positions", a[:, 0], a[:, 1], a[:, 4], a[:, 5], lim)
+    summarize("positions+motion", a[:, 2], a[:, 3], a[:, 4], a[:, 5], lim)
 
 
 def part3(args, tmp: Path) -> None:
@@ -122,7 +138,8 @@ def part3(args, tmp: Path) -> None:
     a = np.array(rows)
     print(f"\n{args.runs} sweeps, {args.grade}, {args.latitude}° N, {args.sweep_rests} rests × {dwell:g} s "
           f"(planned to last {elapsed:.0f} s like 8 × 20 s):")
-    summarize("sweep", a[:, 0], a[:, 1], a[:, 2], a[:, 3])
+    _, lim = planned_limit_deg(args, P.PlanSpec("sweep", args.sweep_rests, dwell, "zigzag"))
+    summarize("sweep", a[:, 0], a[:, 1], a[:, 2], a[:, 3], lim)
 
 
 def part2(args, tmp: Path) -> None:
