@@ -67,16 +67,22 @@ def _explain_open_error(device: str, url: str, exc: Exception) -> DeviceError:
     return DeviceError(device, url, f"cannot open {url} ({text}) — check the port and the bench config")
 
 
+MIN_WRITE_TIMEOUT_S = 1.0
+"""A write waits at least this long (host) for the line to take it: a streaming port reads with a
+short timeout (the IMU's 0.05 s), but a command written to it must not fail because a loaded host
+scheduled the other end late (seen as "Write timeout" on the IMU's pty under load)."""
+
+
 def open_serial(url: str, *, device: str, baudrate: int, timeout_s: float, **kwargs) -> serial.SerialBase:
     """Open `url` with pyserial (exclusive for local paths, also behind ``spy://``); DeviceError on
-    any failure."""
+    any failure. Reads time out after `timeout_s`, writes after at least MIN_WRITE_TIMEOUT_S."""
     if not url:
         raise DeviceError(device, None, "no port given — set it in the bench config or on the command line")
     if is_local_path(url) or url.startswith("spy://"):
         kwargs.setdefault("exclusive", True)
     try:
-        return serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s, write_timeout=timeout_s,
-                                     **kwargs)
+        return serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s,
+                                     write_timeout=max(timeout_s, MIN_WRITE_TIMEOUT_S), **kwargs)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise _explain_open_error(device, url, exc) from None
 
