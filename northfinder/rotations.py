@@ -59,10 +59,13 @@ def tilt_and_azimuth(heading_rad, pitch_rad, roll_rad) -> tuple[np.ndarray, np.n
 
 
 def skew(v) -> np.ndarray:
-    """Cross-product matrix [v×]."""
+    """Cross-product matrix [v×] (filled in place: it sits in the swaying fit's inner loop)."""
     v = np.asarray(v, dtype=float)
-    z = np.zeros_like(v[..., 0])
-    return _stack([[z, -v[..., 2], v[..., 1]], [v[..., 2], z, -v[..., 0]], [-v[..., 1], v[..., 0], z]])
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
 
 
 def rotvec_to_dcm(phi) -> np.ndarray:

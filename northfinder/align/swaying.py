@@ -374,8 +374,9 @@ def _fit_cone_lever(f_ib0, m_n0, lever: _LeverModel, iterations: int = 3):
     c = _wahba(f_ib0, m_n0)
     r = np.zeros(3)
     prior = np.hstack([np.zeros((3, 3)), np.sqrt(lever.ridge) * np.eye(3)])
+    m_skew, g_rows = skew(m_n0), lever.g.reshape(-1, 3)
     for _ in range(iterations):
-        a = np.concatenate([-(c @ skew(m_n0)).reshape(-1, 3), lever.g.reshape(-1, 3)], axis=1)
+        a = np.concatenate([-(c @ m_skew).reshape(-1, 3), g_rows], axis=1)
         res = (f_ib0 - m_n0 @ c.T - np.einsum("jik,k->ji", lever.g, r)).ravel()
         step = np.linalg.lstsq(np.vstack([a, prior]), np.concatenate([res, -np.sqrt(lever.ridge) * r]),
                                rcond=None)[0]
