@@ -32,7 +32,7 @@ pytestmark = pytest.mark.slow
 
 DWELL_S = 2.0
 POSITIONS = 4  # short finds: the campaign, not the find, is under test (test_e2e_find runs 8)
-TIME_SCALE = 10.0
+TIME_SCALE = 20.0
 SIM_TOML = (
     "stage_speed_dps = 90.0\nstage_accel_dps2 = 360.0\nstage_ringing_decay_s = 0.1\naccel_rate_hz = 50.0\n"
 )
