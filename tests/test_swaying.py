@@ -254,6 +254,12 @@ def test_paper_circle_fit_runs_and_is_worse_than_cone():
     e_cone = abs(wrap_deg_180(cone.heading_deg - truth))
     assert e_circle < 5.0
     assert e_cone < e_circle
+    # the windows' residuals the report draws are the fit's own: one row per window, their rms the
+    # diagnostics' figure; the circle fit has no residual model, so none
+    res = cone.window_residual_m_s2
+    assert res.shape == (cone.window_t_s.size, 3) and cone.window_t_s.size == cone.diagnostics["n_windows"]
+    assert np.sqrt(np.mean(res**2)) * 1e6 / 9.80665 == pytest.approx(cone.diagnostics["fit_residual_rms_ug"])
+    assert circle.window_residual_m_s2.size == 0
 
 
 # --- bad input: one clear line ----------------------------------------------------------------

@@ -202,6 +202,11 @@ class SwayingSolution:
     earth_axis_ib0: np.ndarray = field(repr=False)
     """Unit Earth-axis direction in the i_b0 frame."""
     diagnostics: dict = field(default_factory=dict, repr=False)
+    window_t_s: np.ndarray = field(default_factory=lambda: np.empty(0), repr=False)
+    """Centre of each smoothing window [s from the window's start] (eq. 4–5)."""
+    window_residual_m_s2: np.ndarray = field(default_factory=lambda: np.empty((0, 3)), repr=False)
+    """Each window's specific force in i_b0 less the fitted model (the cone and the lever arm's
+    sway, eq. 4a) [m/s², m × 3]; empty for the circle fit, which has no residual model."""
 
 
 GRADE_BIAS_1SIGMA: dict[str, tuple[float, float]] = {
@@ -685,6 +690,8 @@ def align_swaying(
         c_b_n=c_b_n,
         earth_axis_ib0=axis,
         diagnostics=diag,
+        window_t_s=t_win,
+        window_residual_m_s2=np.empty((0, 3)) if residual is None else residual,
     )
 
 

@@ -32,19 +32,15 @@ from typing import Any
 import numpy as np
 
 from northfinder.align.coarse import coarse_align
-from northfinder.align.strapdown import fill_lost_samples
 from northfinder.align.swaying import (
     KVH_GYRO_RANGE_DPS,
     METHODS,
     align_swaying_block,
-    attitude_quaternions,
     grade_bias_prior,
     minimum_duration_s,
-    quat_to_dcm,
-    velocity_increments_ib0,
 )
 from northfinder.config import SwayingConfig
-from northfinder.constants import DEG, OMEGA_EARTH_RAD_S, STANDARD_GRAVITY_M_S2, wrap_deg_180
+from northfinder.constants import DEG, STANDARD_GRAVITY_M_S2, wrap_deg_180
 from northfinder.errors import DeviceError, InputError
 from northfinder.report import report_axes, save_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
@@ -451,50 +447,22 @@ def replay_swaying_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
 
 
 # ---------------------------------------------------------------------------------------------
-# The report: the cone fit's residuals (the estimator gives no heading history)
+# The report: the cone fit's own residuals (the estimator gives no heading history)
 # ---------------------------------------------------------------------------------------------
-def cone_residuals(block: Any, sol: Any, max_sway_period_s: float) -> dict[str, np.ndarray]:
-    """Smoothed specific force in the initial body-inertial frame i_b0 against the fitted cone.
-
-    The estimator's model (docs/swaying.md, paper abstract step 2): in i_b0 the sway-free specific
-    force is g·u(t), u the local vertical turning about the Earth axis a at Ωe. With the solution's
-    vertical at t_end, u(t) = R(a, −Ωe·(t_end − t))·u(t_end). The data side is the velocity
-    increments in i_b0 averaged over 4 longest sway periods (a Blackman–Harris window, as the
-    estimator does) every period; residual = data − model [µg]. Drawn only: not in the result.
-    """
+def cone_residuals(block: Any, sol: Any) -> dict[str, np.ndarray]:
+    """The estimator's own residuals for the report: each smoothing window's specific force in i_b0
+    less the fitted model (the Earth-rate cone and the lever arm's sway, docs/swaying.md eq. 4a)
+    [µg], at the window centres, and the gyro trace. Drawn only: not in the result. ValueError when
+    the method has no residual model (the circle fit)."""
+    if len(sol.window_residual_m_s2) == 0:
+        raise ValueError("no residual model for this method")
     rate = float(block.rate_hz)
-    dt = 1.0 / rate
-    gyro = fill_lost_samples(block.sample_index, block.gyro_rad_s)
-    acc = fill_lost_samples(block.sample_index, block.accel_g)
-    dtheta = gyro * dt
-    dv = acc * (STANDARD_GRAVITY_M_S2 * dt)
-    q = attitude_quaternions(dtheta)
-    dv_ib0 = velocity_increments_ib0(q, dtheta, dv)
-    lw = int(round(4.0 * max_sway_period_s * rate))
-    x = 2.0 * np.pi * (np.arange(lw) + 0.5) / lw
-    h = 0.35875 - 0.48829 * np.cos(x) + 0.14128 * np.cos(2 * x) - 0.01168 * np.cos(3 * x)
-    h /= h.sum()
-    hop = max(1, int(round(max_sway_period_s * rate)))
-    starts = np.arange(0, dv_ib0.shape[0] - lw + 1, hop)
-    # one dot product per window (tens of windows), not per sample
-    f = np.array([h @ dv_ib0[s0 : s0 + lw] for s0 in starts]) / dt
-    t_c = (starts + lw / 2.0) * dt
-    t_end = gyro.shape[0] * dt
-    axis = np.asarray(sol.earth_axis_ib0, dtype=float)
-    u_end = quat_to_dcm(q[-1]) @ np.asarray(sol.c_b_n)[2]  # C_b^{i_b0}(t_end)·(up in b)
-    ang = -OMEGA_EARTH_RAD_S * (t_end - t_c)[:, None]
-    u = (
-        u_end * np.cos(ang)
-        + np.cross(axis, u_end) * np.sin(ang)
-        + axis * (axis @ u_end) * (1.0 - np.cos(ang))
-    )  # Rodrigues, vectorized
-    g = np.linalg.norm(f, axis=1).mean()
-    res = (f - g * u) / STANDARD_GRAVITY_M_S2 * 1e6
+    step = max(1, int(rate // 20))
     return {
-        "t_s": t_c,
-        "residual_ug": res,
-        "gyro_dps": block.gyro_rad_s[:: max(1, int(rate // 20))] / DEG,
-        "t_gyro_s": (block.sample_index[:: max(1, int(rate // 20))] - block.sample_index[0]) / rate,
+        "t_s": np.asarray(sol.window_t_s),
+        "residual_ug": np.asarray(sol.window_residual_m_s2) / STANDARD_GRAVITY_M_S2 * 1e6,
+        "gyro_dps": block.gyro_rad_s[::step] / DEG,
+        "t_gyro_s": (block.sample_index[::step] - block.sample_index[0]) / rate,
     }
 
 
@@ -521,7 +489,8 @@ def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], p
     ax.set_ylabel("cone-fit residual [µg]")
     ax.set_xlabel("window centre, device time [s]")
     ax.set_title(
-        "smoothed specific force in i_b0 − fitted Earth-rate cone (4-period Blackman–Harris)", fontsize=9
+        "smoothed specific force in i_b0 − the fitted Earth-rate cone and lever-arm sway (the fit's windows)",
+        fontsize=9,
     )
     ax.legend(loc="upper right", fontsize=8)
     ax.grid(True, alpha=0.3)
@@ -537,7 +506,7 @@ def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool 
         if report:
             with contextlib.suppress(ValueError):  # a window too short for one residual point: no plot
                 write_swaying_report(
-                    result, cone_residuals(w.block, sol, float(w.start["max_sway_period_s"])), rd.report_path
+                    result, cone_residuals(w.block, sol), rd.report_path
                 )
 
     return base.finish_window(
