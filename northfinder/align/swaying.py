@@ -481,21 +481,18 @@ def _angle_cov_parts(
     solve: Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]],
     f_win: np.ndarray,
     residual: np.ndarray | None,
-    white: tuple[np.ndarray, np.ndarray],
-    total: tuple[np.ndarray, np.ndarray],
+    noise: _NoiseCov,
     lever: _LeverModel | None,
-    rect_phi: np.ndarray,
 ) -> dict[str, np.ndarray]:
     """Covariance of (heading, pitch, roll) by source, linearised through the fit (docs/swaying.md
-    §5): white noise, the turn-on bias priors, the sway-rectified scale-factor asymmetry (`rect_phi`,
-    its part of the total attitude covariance) and the sway leakage."""
+    §5): white noise, the turn-on bias priors, the sway-rectified scale-factor asymmetry and the
+    sway leakage."""
     g_map, jac_f = _jacobians(solve, f_win)
-    cov_phi, cov_acc = total
-    cov_leak = _leakage_covariance(residual, f_win, cov_phi, cov_acc, lever)
+    cov_leak = _leakage_covariance(residual, f_win, *noise.total, lever)
     return {
-        "white_noise": _angles_cov(g_map, jac_f, *white),
-        "bias_prior": _angles_cov(g_map, jac_f, cov_phi - white[0] - rect_phi, cov_acc - white[1]),
-        "sf_asymmetry": g_map @ rect_phi @ g_map.T,
+        "white_noise": _angles_cov(g_map, jac_f, noise.white_phi, noise.white_acc),
+        "bias_prior": _angles_cov(g_map, jac_f, noise.bias_phi, noise.bias_acc),
+        "sf_asymmetry": g_map @ noise.rect_phi @ g_map.T,
         "sway_leakage": jac_f @ cov_leak @ jac_f.T,
     }
 
@@ -655,8 +652,9 @@ def align_swaying(
     n_gyro = white_noise_density(dtheta, dt)  # rad/√s per body axis
     n_acc = white_noise_density(dv, dt)  # m/s/√s per body axis
     rect = _sway_rectified_bias_rad_s(rate, gyro_sf_asymmetry_ppm)
-    cov_phi, cov_acc = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias_dph * DPH,
-                                          accel_bias_ug * 1e-6 * STANDARD_GRAVITY_M_S2, rect)
+    noise = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias_dph * DPH,
+                               accel_bias_ug * 1e-6 * STANDARD_GRAVITY_M_S2, rect)
+    cov_phi, cov_acc = noise.total
     lever = _lever_model(q, starts, h, dt, f_win, cov_phi, cov_acc, lever_arm_std_m) \
         if method != "circle" else None
     whiten = _gls_whitening(f_win, m_win, cov_phi, cov_acc, t_end, lat, lever) \
@@ -668,9 +666,7 @@ def align_swaying(
     if method != "circle":
         cone = (c_b_ib0_end @ c_b_n.T @ _earth_rotation_n0_to_nt(t_end, lat) @ m_win.T).T
         residual = f_win - cone - (0.0 if lever is None else np.einsum("jik,k->ji", lever.g, lever_m))
-    white = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, 0.0, 0.0)
-    rect_phi = _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, 0.0, 0.0, rect)[0] - white[0]
-    parts = _angle_cov_parts(solve, f_win, residual, white, (cov_phi, cov_acc), lever, rect_phi)
+    parts = _angle_cov_parts(solve, f_win, residual, noise, lever)
     std = np.sqrt(np.maximum(np.diag(sum(parts.values())), 0.0))
     diag = _diagnostics(
         n, n_lost, rate_hz, lw * dt, len(starts), n_gyro, n_acc, peak_dps,
@@ -725,7 +721,8 @@ def predicted_heading_std_deg(
     q[:, 0] = 1.0
     n_g = np.full(3, arw_deg_rt_h * DEG / 60.0)
     n_a = np.full(3, accel_noise_ug_rt_hz * 1e-6 * STANDARD_GRAVITY_M_S2)
-    cov_phi, cov_acc = _noise_covariances(starts, h, t_win, duration_s, dt, q, n_g, n_a, 0.0, 0.0)
+    noise = _noise_covariances(starts, h, t_win, duration_s, dt, q, n_g, n_a)
+    cov_phi, cov_acc = noise.white_phi, noise.white_acc
     m = m_win.shape[0]
     s_f = _block_skew(m_win)
     sigma = s_f @ cov_phi[: 3 * m, : 3 * m] @ s_f.T + cov_acc
@@ -811,8 +808,26 @@ def _smooth_windows(dv_ib0, starts, h, dt, lat, g):
     return f_win, m_win, t_win
 
 
-def _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias, accel_bias, rect_bias=None):
-    """Covariances of the noise the windows see (docs/swaying.md §5), all in i_b0 axes.
+@dataclass(frozen=True)
+class _NoiseCov:
+    """The windows' noise covariances by source (docs/swaying.md §5), in i_b0 axes: the attitude
+    error φ of every window and of t_end [3(m+1)]², the accelerometer's [3m]²."""
+
+    white_phi: np.ndarray
+    white_acc: np.ndarray
+    bias_phi: np.ndarray
+    bias_acc: np.ndarray
+    rect_phi: np.ndarray
+    """The sway-rectified scale-factor asymmetry: one more constant gyro bias."""
+
+    @property
+    def total(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.white_phi + self.bias_phi + self.rect_phi, self.white_acc + self.bias_acc
+
+
+def _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias=0.0, accel_bias=0.0,
+                       rect_bias=None) -> _NoiseCov:
+    """Covariances of the noise the windows see (docs/swaying.md §5), all in i_b0 axes, by source.
 
     The attitude random walk φ(t) driven by the gyro white noise has Cov(φ(s), φ(t)) = Q·min(s,t);
     a constant gyro bias prior adds φ = b·t. A window sees Φ_j = ∫h_j φ, so
@@ -820,20 +835,18 @@ def _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias,
     min(s,t) = ∫ 1[τ<s]·1[τ<t] dτ; the end attitude sees φ(t_end) (H = 1 up to t_end).
     The accelerometer white noise gives Cov(A_i, A_j) = Q_a·∫h_i h_j dt, its bias prior a
     constant. `rect_bias` [rad/s]: per body axis, a further constant gyro bias 1σ (the sway-rectified
-    scale-factor asymmetry, `_sway_rectified_bias_rad_s`). Returns (cov_phi [3(m+1)]², cov_acc [3m]²);
-    the last block of cov_phi is φ(t_end).
+    scale-factor asymmetry, `_sway_rectified_bias_rad_s`). The last block of the φ covariances is
+    φ(t_end).
     """
     m = starts.size
     lw = h.size
     n = q.shape[0] - 1
     # Rotate per-axis body noise into i_b0 (the body sways, so average over the record).
     c = quat_to_dcm(q[1:: max(1, n // 200)])
-    qg = np.einsum("kij,j,klj->il", c, n_gyro**2, c) / c.shape[0]
-    qa = np.einsum("kij,j,klj->il", c, n_acc**2, c) / c.shape[0]
-    qb = np.eye(3) * gyro_bias**2
-    if rect_bias is not None:
-        qb = qb + np.einsum("kij,j,klj->il", c, rect_bias**2, c) / c.shape[0]
-    qab = np.eye(3) * accel_bias**2
+
+    def in_ib0(per_axis: np.ndarray) -> np.ndarray:
+        return np.einsum("kij,j,klj->il", c, per_axis**2, c) / c.shape[0]
+
     # Kernels on a coarse grid of D samples (≥ 40 cells per window) for the Brownian covariance.
     d = max(1, lw // 40)
     n_c = n // d
@@ -847,10 +860,16 @@ def _noise_covariances(starts, h, t_win, t_end, dt, q, n_gyro, n_acc, gyro_bias,
     k_phi = tail @ tail.T * step
     k_phi[m, m] = t_end
     t_all = np.append(t_win, t_end)
+    k_bias = np.outer(t_all, t_all)
     k_acc = hc[:m] @ hc[:m].T / step
-    cov_phi = np.kron(k_phi, qg) + np.kron(np.outer(t_all, t_all), qb)
-    cov_acc = np.kron(k_acc, qa) + np.kron(np.ones((m, m)), qab)
-    return cov_phi, cov_acc
+    rect = np.zeros((3, 3)) if rect_bias is None else in_ib0(np.asarray(rect_bias))
+    return _NoiseCov(
+        white_phi=np.kron(k_phi, in_ib0(n_gyro)),
+        white_acc=np.kron(k_acc, in_ib0(n_acc)),
+        bias_phi=np.kron(k_bias, np.eye(3) * gyro_bias**2),
+        bias_acc=np.kron(np.ones((m, m)), np.eye(3) * accel_bias**2),
+        rect_phi=np.kron(k_bias, rect),
+    )
 
 
 def _gls_step(f_win, m_n0, c_ib0_nt, t_end_s, lat, whiten):
