@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from northfinder.align.gnss_ins import IMU_GRADES
+from northfinder.align.grades import IMU_GRADES
 from northfinder.align.limits import latitude_problem
 from northfinder.align.swaying import METHODS as SWAYING_METHODS
 from northfinder.errors import ConfigError
@@ -72,7 +72,7 @@ class ImuConfig:
     """Gyro units (`?ROTUNITS`): RAD or DEG."""
     grade: str = ""
     """align --mode gnss: the IMU class (nav, kvh1760, tactical-mems, consumer) whose data-sheet noise the
-    filter then uses (gnss_ins.IMU_GRADES); empty: not known, conservative default noise."""
+    filter then uses (align.grades.IMU_GRADES); empty: not known, conservative default noise."""
 
 
 @dataclass

@@ -33,8 +33,8 @@ from firmware_sim.physics.sensors import ACCEL_PRESETS, GYRO_PRESETS, AccelModel
 from firmware_sim.physics.table import TableMotion  # noqa: E402
 from firmware_sim.physics.world import Sinusoid, Site, SwayingPlatform, World  # noqa: E402
 from northfinder.align.coarse import coarse_align  # noqa: E402
+from northfinder.align.grades import IMU_GRADES  # noqa: E402
 from northfinder.align.swaying import (  # noqa: E402
-    GRADE_SF_ASYMMETRY_PPM,
     align_swaying,
     attitude_quaternions,
     predicted_heading_std_deg,
@@ -66,7 +66,7 @@ def record(world: World, grade: str, duration_s: float, rate_hz: float, seed: in
     n = int(round(duration_s * rate_hz))
     dth, dv = world.increments(0.0, n, 1.0 / rate_hz, LEVER_ARM_M)
     ss = np.random.SeedSequence(seed).spawn(2)
-    gyro = GyroModel(GYRO_PRESETS[grade], rate_hz, ss[0]).apply(dth) * rate_hz
+    gyro = GyroModel(GYRO_PRESETS[grade], rate_hz, ss[0]).apply(dth, dv) * rate_hz
     accel = AccelModel(ACCEL_PRESETS[grade], rate_hz, ss[1]).apply(dv) * rate_hz / STANDARD_GRAVITY_M_S2
     return gyro, accel
 
@@ -100,7 +100,7 @@ def estimate(method: str, gyro, accel, rate_hz: float, duration_s: float, grade:
     accel_bias_ug = float(np.sqrt(np.mean(np.square(ACCEL_PRESETS[grade].bias_ug))))
     s = align_swaying(g, a, rate_hz, LAT_DEG, method=method, max_sway_period_s=period,
                       gyro_bias_dph=bias_1sigma_dph(grade), accel_bias_ug=accel_bias_ug,
-                      gyro_sf_asymmetry_ppm=GRADE_SF_ASYMMETRY_PPM[grade])
+                      gyro_sf_asymmetry_ppm=IMU_GRADES[grade].gyro_sf_asymmetry_ppm)
     return s.heading_deg, s.heading_std_deg
 
 

@@ -29,10 +29,11 @@ ENU velocity, σ).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from northfinder.align.grades import imu_grade
 from northfinder.align.strapdown import (
     ChunkSummary,
     LocalLevel,
@@ -189,67 +190,36 @@ class GnssAlignConfig:
     still_force_sigmas: float = 4.0
     """Standing also needs the IMU's horizontal specific force (heading aside) within this many σ of
     zero: the heading becomes observable with the first acceleration, before the fix speed shows it."""
+    restart_below_deg: float | None = 5.0
+    """Heading unknown: once the heading 1σ falls below this, the filter starts again from the still
+    start with a Gaussian prior (run_alignment); None: one pass from the uniform prior."""
+    restart_prior_factor: float = 2.0
+    """The restarted prior's 1σ over the first pass's σ at the restart (see run_alignment)."""
     noise_source: str = "default"
     """Where the IMU noise and bias figures came from: "default" (the conservative figures above, for
     an IMU whose grade is not known) or "grade <name>" (IMU_GRADES, `for_imu_grade`)."""
 
     @classmethod
     def for_imu_grade(cls, grade: str | None, **kwargs) -> GnssAlignConfig:
-        """A config with the IMU grade's data-sheet noise and bias figures (IMU_GRADES) when the grade is
-        known; the conservative defaults (noise_source "default") when `grade` is None or empty."""
+        """A config with the IMU grade's data-sheet figures (grades.IMU_GRADES) when the grade is known;
+        the conservative defaults (noise_source "default") when `grade` is None or empty.
+
+        From the grade: the noise densities; the turn-on biases as the bias priors; the bias
+        instability B with its correlation time τ as a random walk of density B·√(2/τ) (the
+        Gauss–Markov process's driving noise: exact over t ≪ τ, conservative beyond)."""
         if not grade:
             return cls(**kwargs)
-        g = IMU_GRADES.get(str(grade))
-        if g is None:
-            raise InputError(
-                f"IMU grade {grade!r} is not known: use one of {', '.join(IMU_GRADES)} (or leave it out "
-                "for conservative default noise)"
-            )
-        return cls(**{**g.config_values(), "noise_source": f"grade {grade}", **kwargs})
-
-
-@dataclass(frozen=True)
-class ImuGrade:
-    """Data-sheet-type figures of an IMU class: gyro ARW [°/√h], accelerometer noise density (VRW)
-    [µg/√Hz], bias instability [°/h, µg] with its correlation time [s].
-
-    The turn-on bias priors stay the conservative defaults (1 °/h, 1000 µg) even for a known grade:
-    with the class's own turn-on figures (kvh1760 0.26 °/h, 410 µg) the heading σ at 300 s of the
-    coverage drive fell to 0.017° against a measured rms error of 0.024° (12 seeds; the excess is not
-    from the scale-factor, misalignment, g-sensitivity or bias-instability terms — each switched off
-    left it), so they are not used until that is understood (docs/gnss-alignment.md §11)."""
-
-    arw_deg_sqrt_h: float
-    vrw_ug_sqrt_hz: float
-    gyro_bias_instability_dph: float
-    accel_bias_instability_ug: float
-    bias_correlation_s: float
-
-    def config_values(self) -> dict[str, float]:
-        """GnssAlignConfig fields. The filter carries the biases as random walks: a Gauss–Markov bias of
-        instability B and correlation time τ is driven by white noise of density B·√(2/τ); as a random
-        walk that is exact over t ≪ τ and conservative beyond (its variance keeps growing)."""
-        k = math.sqrt(2.0 / self.bias_correlation_s)
-        return {
-            "gyro_arw_deg_sqrt_h": self.arw_deg_sqrt_h,
-            "accel_vrw_ug_sqrt_hz": self.vrw_ug_sqrt_hz,
-            "gyro_bias_rw_dph_sqrt_s": self.gyro_bias_instability_dph * k,
-            "accel_bias_rw_ug_sqrt_s": self.accel_bias_instability_ug * k,
+        g = imu_grade(grade)
+        k = math.sqrt(2.0 / g.bias_correlation_s)
+        values = {
+            "gyro_arw_deg_sqrt_h": g.arw_deg_sqrt_h,
+            "accel_vrw_ug_sqrt_hz": g.vrw_ug_sqrt_hz,
+            "gyro_bias_std_dph": g.gyro_turn_on_dph,
+            "accel_bias_std_ug": g.accel_turn_on_ug,
+            "gyro_bias_rw_dph_sqrt_s": g.gyro_bias_instability_dph * k,
+            "accel_bias_rw_ug_sqrt_s": g.accel_bias_instability_ug * k,
         }
-
-
-IMU_GRADES: dict[str, ImuGrade] = {
-    name: ImuGrade(arw, vrw, bi_g, bi_a, tau)
-    for name, arw, vrw, bi_g, bi_a, tau in (
-        ("nav", 0.002, 10.0, 0.005, 2.0, 600.0),
-        ("kvh1760", 0.012, 120.0, 0.05, 50.0, 300.0),
-        ("tactical-mems", 0.15, 40.0, 0.5, 10.0, 100.0),
-        ("consumer", 1.0, 200.0, 10.0, 100.0, 60.0),
-    )
-}
-"""The IMU classes of docs/simulator.md by their data-sheet figures (KVH 1750/1760: ARW 0.012 °/√h,
-VRW 0.12 mg/√Hz, bias instability 0.05 °/h and 0.05 mg; the others the class figures the simulator's
-grades state), copied by value: northfinder never imports firmware_sim."""
+        return cls(**{**values, "noise_source": f"grade {grade}", **kwargs})
 
 
 @dataclass
@@ -291,6 +261,10 @@ class GnssAlignResult:
     start_s: float
     history: GnssAlignHistory
     extra: dict = field(default_factory=dict)
+    restart: dict | None = None
+    """Heading unknown and restarted (run_alignment): `t_s` (the first pass's last update),
+    `coarse_heading_deg`/`coarse_std_deg` (its estimate there), `initial_heading_deg`/`prior_std_deg`
+    (the second pass's start)."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -323,6 +297,7 @@ class _ErrorStateFilter:
         self.P[self.A, self.A] = self.attitude_prior(initial_heading_rad)
         self.omega_nb_b = np.zeros(3)
         self.force_z2 = 0.0  # squared Mahalanobis size of the last chunk's horizontal specific force
+        self.heading_moved_rad = 0.0  # sum of the heading corrections fed back (run_alignment's restart)
 
     # -- subclass hooks --------------------------------------------------------------------------
     def attitude_prior(self, heading_rad: float) -> np.ndarray:
@@ -515,7 +490,10 @@ class _ErrorStateFilter:
         st.pos_enu_m = st.pos_enu_m - x[P_]
         st.v_enu_m_s = st.v_enu_m_s - x[V_]
         self.x = np.zeros(self.n)
+        psi_before = _heading_split(st.c_bn)[0]
         self.x[self.A] = self.attitude_feedback(x[self.A])
+        moved = _heading_split(self.ins.state.c_bn)[0] - psi_before
+        self.heading_moved_rad += math.remainder(moved, 2.0 * math.pi)
         self.ins.accel_bias_m_s2 = self.ins.accel_bias_m_s2 + x[self.BA]
         self.ins.gyro_bias_rad_s = self.ins.gyro_bias_rad_s + x[self.BG]
         if self.estimate_lever:
@@ -668,10 +646,20 @@ def coarse_level(dv_m_s: np.ndarray) -> tuple[float, float]:
     return math.atan2(f[1], math.hypot(f[0], f[2])), math.atan2(-f[0], f[2])
 
 
-def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_deg: float,
-                  config: GnssAlignConfig | None = None) -> GnssAlignResult:
-    """Level on the still start, then run the filter over every GNSS fix; return the histories."""
-    cfg = config or GnssAlignConfig()
+@dataclass
+class _Pass:
+    """One filter pass over the fixes: its update rows, the filter as it ended, its start state."""
+
+    rows: list
+    flt: _ErrorStateFilter
+    start: NavState
+    stopped_early: bool
+
+
+def _run_pass(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_deg: float,
+              cfg: GnssAlignConfig, stop_below_deg: float | None = None) -> _Pass:
+    """Level on the still start, then run the filter over the fixes: to the end, or to the first update
+    whose heading 1σ is below `stop_below_deg`."""
     dth, dv = imu.increments()
     gaps = imu.gap_variance()
     rate = float(imu.rate_hz)
@@ -694,6 +682,7 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
     la0 = np.asarray(cfg.lever_arm_b_m, float)
     k_cur = int(math.floor((t_fix[j0] - imu.t0_s) * rate + 1e-9))
     state = NavState(gnss.pos_enu_m[j0] - c0 @ la0, gnss.vel_enu_m_s[j0].copy(), c0, imu.t0_s + k_cur / rate)
+    start = NavState(state.pos_enu_m.copy(), state.v_enu_m_s.copy(), c0.copy(), state.t_s)
     ins = Strapdown(state, rate, origin)
     ins._prev_dtheta, ins._prev_dv = dth[k_cur - 1].copy(), dv[k_cur - 1].copy()
     flt = filter_cls(ins, cfg, psi0)
@@ -721,18 +710,59 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
         z = flt.update(gnss.pos_enu_m[j], gnss.vel_enu_m_s[j], gnss.pos_std_m[j], gnss.vel_std_m_s[j],
                        t_fix[j] - ins.state.t_s)
         rows.append(_snapshot(flt, z))
+        if stop_below_deg is not None and rows[-1][2] < stop_below_deg:
+            return _Pass(rows, flt, start, True)
         if k_cur >= n_imu:
             break
-    hist = GnssAlignHistory(*[np.array(col) for col in zip(*rows, strict=True)])
+    return _Pass(rows, flt, start, False)
+
+
+def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_deg: float,
+                  config: GnssAlignConfig | None = None) -> GnssAlignResult:
+    """Level on the still start, then run the filter over every GNSS fix; return the histories.
+
+    Heading unknown (`heading_std_deg` None, the uniform prior): the first pass runs until the
+    heading 1σ falls below `restart_below_deg` (within ~2 s of motion), then the filter starts again
+    from the still start at the initial heading plus every heading correction the first pass fed
+    back, with a Gaussian prior of `restart_prior_factor` × that σ. Why: the first pass's large
+    corrections (up to 180° in a second) leave errors in the tilt and the accelerometer bias that the
+    linearized covariance does not hold (a noise-free run from 150° off: −0.028° at 30 s of motion,
+    0.54σ, for every seed alike), so from an unknown start the σ was too small at 30–120 s; a start
+    within a few degrees leaves none (docs/gnss-alignment.md §12). The history is the first pass's up
+    to the restart and the second's after it: each row uses only the data up to its time. The second
+    pass uses the data before the restart twice; with a prior of 2σ that adds a quarter of the
+    information it holds (its σ there 0.89 × the first pass's), and by convergence (σ < 1° against
+    a ≥ 5° prior) under 4 %."""
+    cfg = config or GnssAlignConfig()
+    restart = None
+    if cfg.heading_std_deg is None and cfg.restart_below_deg is not None:
+        first = _run_pass(filter_cls, imu, gnss, initial_heading_deg, cfg, cfg.restart_below_deg)
+        if not first.stopped_early:
+            return _result(first, cfg, None)
+        t_c, coarse_deg, coarse_std = first.rows[-1][0], first.rows[-1][1], first.rows[-1][2]
+        psi2 = (initial_heading_deg + math.degrees(first.flt.heading_moved_rad)) % 360.0
+        prior_std = cfg.restart_prior_factor * coarse_std
+        second = _run_pass(filter_cls, imu, gnss, psi2, replace(cfg, heading_std_deg=prior_std))
+        second.rows = first.rows + [r for r in second.rows if r[0] > t_c + 1e-9]
+        restart = {"t_s": float(t_c), "coarse_heading_deg": float(coarse_deg),
+                   "coarse_std_deg": float(coarse_std), "initial_heading_deg": float(psi2),
+                   "prior_std_deg": float(prior_std)}
+        return _result(second, cfg, restart)
+    return _result(_run_pass(filter_cls, imu, gnss, initial_heading_deg, cfg), cfg, restart)
+
+
+def _result(run: _Pass, cfg: GnssAlignConfig, restart: dict | None) -> GnssAlignResult:
+    """The last update's estimates, the convergence time and the histories of a pass."""
+    hist = GnssAlignHistory(*[np.array(col) for col in zip(*run.rows, strict=True)])
     thr = cfg.converged_std_deg
     above = np.nonzero(hist.heading_std_deg >= thr)[0]
     if len(hist.t_s) == 0 or (len(above) and above[-1] == len(hist.t_s) - 1):
         converged = None
     else:
         first = above[-1] + 1 if len(above) else 0
-        converged = float(hist.t_s[first] - state.t_s)
+        converged = float(hist.t_s[first] - run.start.t_s)
     return GnssAlignResult(
-        method=flt.method,
+        method=run.flt.method,
         heading_deg=float(hist.heading_deg[-1]),
         heading_std_deg=float(hist.heading_std_deg[-1]),
         pitch_deg=float(hist.pitch_deg[-1]),
@@ -743,10 +773,11 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
         accel_bias_ug=hist.accel_bias_ug[-1].copy(),
         pos_enu_m=hist.pos_enu_m[-1].copy(),
         converged_after_s=converged,
-        start_s=state.t_s,
+        start_s=run.start.t_s,
         history=hist,
         extra={"noise_source": cfg.noise_source, "gyro_arw_deg_sqrt_h": cfg.gyro_arw_deg_sqrt_h,
                "accel_vrw_ug_sqrt_hz": cfg.accel_vrw_ug_sqrt_hz},
+        restart=restart,
     )
 
 

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from northfinder.align.grades import IMU_GRADES
 from northfinder.align.limits import LATITUDE_ADVICE, latitude_problem
 from northfinder.align.strapdown import fill_lost_samples
 from northfinder.constants import (
@@ -56,8 +57,6 @@ __all__ = [
     "white_noise_density",
     "minimum_duration_s",
     "predicted_heading_std_deg",
-    "GRADE_BIAS_1SIGMA",
-    "GRADE_SF_ASYMMETRY_PPM",
     "grade_bias_prior",
 ]
 
@@ -209,36 +208,16 @@ class SwayingSolution:
     sway, eq. 4a) [m/s², m × 3]; empty for the circle fit, which has no residual model."""
 
 
-GRADE_BIAS_1SIGMA: dict[str, tuple[float, float]] = {
-    "nav": (0.0061, 25.0),
-    "kvh1760": (0.26, 410.0),
-    "tactical-mems": (4.6, 700.0),
-    "consumer": (177.0, 20400.0),
-}
-"""1σ turn-on bias of a horizontal gyro [°/h] (turn-on ⊕ bias instability) and accelerometer [µg] per IMU
-class (the data-sheet class figures of docs/simulator.md's grades). A fixed base cannot separate a
-gyro bias from the Earth rate: it is the bias floor εE/(Ωe·cos L) the reported σ must carry."""
-
-
-GRADE_SF_ASYMMETRY_PPM: dict[str, float] = {
-    "nav": 1.0,
-    "kvh1760": 20.0,
-    "tactical-mems": 200.0,
-    "consumer": 2000.0,
-}
-"""1σ gyro scale-factor asymmetry (S₊ − S₋)/S [ppm] per IMU class (docs/simulator.md's grades). The sway
-rectifies it into a bias (`_sway_rectified_bias_rad_s`) that, like the turn-on bias, cannot be separated
-from the Earth rate."""
-
-
 def grade_bias_prior(grade: str | None) -> dict[str, float]:
-    """align_swaying's bias-prior keyword arguments for an IMU class (turn-on biases and scale-factor
-    asymmetry); {} when the class is unknown."""
-    if grade is None or grade not in GRADE_BIAS_1SIGMA:
+    """align_swaying's bias-prior keyword arguments for an IMU class (grades.IMU_GRADES: the turn-on
+    biases — a fixed base cannot separate a gyro bias from the Earth rate, so it is the bias floor
+    εE/(Ωe·cos L) the reported σ must carry — and the scale-factor asymmetry the sway rectifies into a
+    bias, `_sway_rectified_bias_rad_s`); {} when the class is unknown."""
+    g = IMU_GRADES.get(str(grade)) if grade else None
+    if g is None:
         return {}
-    gyro_dph, accel_ug = GRADE_BIAS_1SIGMA[grade]
-    return {"gyro_bias_dph": gyro_dph, "accel_bias_ug": accel_ug,
-            "gyro_sf_asymmetry_ppm": GRADE_SF_ASYMMETRY_PPM[grade]}
+    return {"gyro_bias_dph": g.gyro_turn_on_dph, "accel_bias_ug": g.accel_turn_on_ug,
+            "gyro_sf_asymmetry_ppm": g.gyro_sf_asymmetry_ppm}
 
 
 def _sway_rectified_bias_rad_s(rate_rad_s: np.ndarray, asymmetry_ppm: float) -> np.ndarray:

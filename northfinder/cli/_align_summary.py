@@ -25,7 +25,13 @@ def start_text(result: dict[str, Any]) -> str:
     """Which heading start the filter used: a prior with its σ, or unknown (the first turn decides)."""
     psi0, std = result["initial_heading_deg"], result.get("initial_heading_std_deg")
     if std is None:
-        return f"heading unknown (filter started at {psi0:.2f}°, uniform prior; the first turn decides)"
+        text = f"heading unknown (filter started at {psi0:.2f}°, uniform prior; the first turn decides)"
+        r = result.get("restart")
+        if r:
+            text += (f"; at {r['t_s']:.1f} s ({r['coarse_heading_deg']:.2f}° ± {r['coarse_std_deg']:.2f}°) "
+                     f"started again from the still start at {r['initial_heading_deg']:.2f}° ± "
+                     f"{r['prior_std_deg']:.2f}°")
+        return text
     return f"prior {psi0:.2f}° ± {std:g}° (1σ), held while standing still"
 
 

@@ -217,6 +217,13 @@ def _method_dict(res: GnssAlignResult, truth_heading_deg: float | None) -> dict[
     return out
 
 
+def _restart_dict(res: GnssAlignResult, t_start_imu: float) -> dict[str, Any] | None:
+    """The unknown-heading restart (GnssAlignResult.restart) with its time from the first IMU sample."""
+    if res.restart is None:
+        return None
+    return {**res.restart, "t_s": res.restart["t_s"] - t_start_imu}
+
+
 def _time_below(t: np.ndarray, err: np.ndarray, thr: float) -> float | None:
     """First time after which |err| stays below thr to the end (None: not reached)."""
     bad = np.nonzero(np.abs(err) >= thr)[0]
@@ -388,6 +395,7 @@ def compute_gnss_result(
         "filter_end_s": t_last - t_start_imu,
         "initial_heading_deg": psi0,
         "initial_heading_std_deg": heading_std,
+        "restart": _restart_dict(main, t_start_imu),
         "lever_arm_prior_m": list(flt["lever_arm_prior_m"]),
         "lever_arm_prior_std_m": float(flt["lever_arm_std_m"]),
         "imu_noise": dict(main.extra),
