@@ -9,7 +9,8 @@ at the estimator level on firmware_sim physics (the pattern of tools/reproduce_g
 tools/reproduce_swaying_paper.py): one run per seed, every seed with its own sensor noise, its own
 turn-on biases (drawn per axis as N(0, b²) with b the grade's preset value — the presets are one
 fixed draw, and a Monte Carlo over one fixed bias would test nothing), its own GNSS noise and, for
-swaying, its own heading and sway phases.
+swaying, its own heading and sway phases. The gyros' g-sensitivity is driven by the true specific
+force, as the simulated device does.
 
   gnss     the 310 s default drive (motion from 10 s, still again from 298 s), kvh1760, 250 Hz,
            GNSS 10 Hz; the filter set up as `northfinder align --mode gnss --simulate` sets it up
@@ -120,7 +121,7 @@ class GnssBench:
         ss = np.random.SeedSequence(seed).spawn(4)
         gb, ab = drawn_biases(self.grade, np.random.default_rng(ss[3]))
         dth = GyroModel(gyro_errors(self.grade, **gb), self.rate_hz, np.random.default_rng(ss[0])).apply(
-            self.dth
+            self.dth, self.dv  # the true specific force drives the gyros' g-sensitivity, as on the device
         )
         dv = AccelModel(accel_errors(self.grade, **ab), self.rate_hz, np.random.default_rng(ss[1])).apply(
             self.dv
@@ -211,7 +212,7 @@ def sway_run(grade: str, seed: int, rate_hz: float) -> dict:
     dth, dv = world.increments(0.0, n, 1.0 / rate_hz, SWAY_LEVER_M)
     ss = np.random.SeedSequence(seed).spawn(3)
     gb, ab = drawn_biases(grade, np.random.default_rng(ss[2]))
-    gyro = GyroModel(gyro_errors(grade, **gb), rate_hz, ss[0]).apply(dth) * rate_hz
+    gyro = GyroModel(gyro_errors(grade, **gb), rate_hz, ss[0]).apply(dth, dv) * rate_hz
     accel = AccelModel(accel_errors(grade, **ab), rate_hz, ss[1]).apply(dv) * rate_hz / STANDARD_GRAVITY_M_S2
     errs, stds = [], []
     prior = grade_bias_prior(grade)
