@@ -191,8 +191,9 @@ class GnssAlignConfig:
     """Standing also needs the IMU's horizontal specific force (heading aside) within this many σ of
     zero: the heading becomes observable with the first acceleration, before the fix speed shows it."""
     restart_below_deg: float | None = 5.0
-    """Heading unknown: once the heading 1σ falls below this, the filter starts again from the still
-    start with a Gaussian prior (run_alignment); None: one pass from the uniform prior."""
+    """Heading unknown or its prior wider than restart_prior_factor × this: once the heading 1σ falls
+    below this, the filter starts again from the still start with a Gaussian prior (run_alignment);
+    None: one pass from the prior."""
     restart_prior_factor: float = 2.0
     """The restarted prior's 1σ over the first pass's σ at the restart (see run_alignment)."""
     noise_source: str = "default"
@@ -275,6 +276,7 @@ class _ErrorStateFilter:
 
     method = "?"
     n_att = 0
+    restarts = False  # run_alignment may restart it from a wide heading prior
 
     def __init__(self, ins: Strapdown, config: GnssAlignConfig, initial_heading_rad: float):
         self.ins = ins
@@ -512,6 +514,7 @@ class SinCosFilter(_ErrorStateFilter):
 
     method = "sincos"
     n_att = 4
+    restarts = True
 
     def attitude_prior(self, heading_rad: float) -> np.ndarray:
         """Second moments of (sin δψ, 1 − cos δψ) for δψ ~ N(0, σ²) or uniform, rotated into η."""
@@ -721,21 +724,22 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
                   config: GnssAlignConfig | None = None) -> GnssAlignResult:
     """Level on the still start, then run the filter over every GNSS fix; return the histories.
 
-    Heading unknown (`heading_std_deg` None, the uniform prior): the first pass runs until the
-    heading 1σ falls below `restart_below_deg` (within ~2 s of motion), then the filter starts again
-    from the still start at the initial heading plus every heading correction the first pass fed
-    back, with a Gaussian prior of `restart_prior_factor` × that σ. Why: the first pass's large
-    corrections (up to 180° in a second) leave errors in the tilt and the accelerometer bias that the
-    linearized covariance does not hold (a noise-free run from 150° off: −0.028° at 30 s of motion,
+    Heading unknown (`heading_std_deg` None, the uniform prior) or a prior wider than 2 × 5°: the first
+    pass runs until the heading 1σ falls below `restart_below_deg` (within ~2 s of motion), then the
+    filter starts again from the still start at the initial heading plus every heading correction the
+    first pass fed back, with a Gaussian prior of `restart_prior_factor` × that σ. Why: the first pass's
+    large corrections (up to 180° in a second) leave errors in the tilt and the accelerometer bias that
+    the linearized covariance does not hold (a noise-free run from 150° off: −0.028° at 30 s of motion,
     0.54σ, for every seed alike), so from an unknown start the σ was too small at 30–120 s; a start
-    within a few degrees leaves none (docs/gnss-alignment.md §12). The history is the first pass's up
-    to the restart and the second's after it: each row uses only the data up to its time. The second
-    pass uses the data before the restart twice; with a prior of 2σ that adds a quarter of the
-    information it holds (its σ there 0.89 × the first pass's), and by convergence (σ < 1° against
-    a ≥ 5° prior) under 4 %."""
+    within a few degrees leaves none (docs/gnss-alignment.md §13). Only a filter whose `restarts` is set
+    restarts (the sin/cos filter; the small-angle one is the comparison, run as it is). The history is
+    the first pass's up to the restart and the second's after it: each row uses only the data up to its
+    time. The second pass uses the data before the restart twice; with a prior of 2σ that adds a quarter
+    of the information it holds (its σ there 0.89 × the first pass's), and by convergence (σ < 1°
+    against a ≥ 5° prior) under 4 %."""
     cfg = config or GnssAlignConfig()
     restart = None
-    if cfg.heading_std_deg is None and cfg.restart_below_deg is not None:
+    if getattr(filter_cls, "restarts", False) and _starts_wide(cfg):
         first = _run_pass(filter_cls, imu, gnss, initial_heading_deg, cfg, cfg.restart_below_deg)
         if not first.stopped_early:
             return _result(first, cfg, None)
@@ -749,6 +753,14 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
                    "prior_std_deg": float(prior_std)}
         return _result(second, cfg, restart)
     return _result(_run_pass(filter_cls, imu, gnss, initial_heading_deg, cfg), cfg, restart)
+
+
+def _starts_wide(cfg: GnssAlignConfig) -> bool:
+    """The heading prior is unknown, or wider than the restart's own prior could be (2 × 5°)."""
+    if cfg.restart_below_deg is None:
+        return False
+    wide = cfg.restart_prior_factor * cfg.restart_below_deg
+    return cfg.heading_std_deg is None or cfg.heading_std_deg > wide
 
 
 def _result(run: _Pass, cfg: GnssAlignConfig, restart: dict | None) -> GnssAlignResult:
