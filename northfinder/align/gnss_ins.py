@@ -738,12 +738,11 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
     of the information it holds (its σ there 0.89 × the first pass's), and by convergence (σ < 1°
     against a ≥ 5° prior) under 4 %."""
     cfg = config or GnssAlignConfig()
-    restart = None
     if getattr(filter_cls, "restarts", False) and _starts_wide(cfg):
         first = _run_pass(filter_cls, imu, gnss, initial_heading_deg, cfg, cfg.restart_below_deg)
         if not first.stopped_early:
             return _result(first, cfg, None)
-        t_c, coarse_deg, coarse_std = first.rows[-1][0], first.rows[-1][1], first.rows[-1][2]
+        t_c, coarse_deg, coarse_std = first.rows[-1][0:3]  # _snapshot: t, heading, its 1σ
         psi2 = (initial_heading_deg + math.degrees(first.flt.heading_moved_rad)) % 360.0
         prior_std = cfg.restart_prior_factor * coarse_std
         second = _run_pass(filter_cls, imu, gnss, psi2, replace(cfg, heading_std_deg=prior_std))
@@ -752,7 +751,7 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
                    "coarse_std_deg": float(coarse_std), "initial_heading_deg": float(psi2),
                    "prior_std_deg": float(prior_std)}
         return _result(second, cfg, restart)
-    return _result(_run_pass(filter_cls, imu, gnss, initial_heading_deg, cfg), cfg, restart)
+    return _result(_run_pass(filter_cls, imu, gnss, initial_heading_deg, cfg), cfg, None)
 
 
 def _starts_wide(cfg: GnssAlignConfig) -> bool:
