@@ -429,7 +429,7 @@ def noise_free_drive():
 def test_unknown_start_restarts_and_leaves_no_transient_error(noise_free_drive, e0_deg):
     """Heading unknown: the first pass's corrections of up to 180° left −0.028° (from 150°) at 30 s of
     motion in a noise-free run, the same sign for every seed, so the σ of a Monte Carlo over seeds was
-    too small there (docs/gnss-alignment.md §12). Restarted from the still start once σ < 5°, what is
+    too small there (docs/gnss-alignment.md §13). Restarted from the still start once σ < 5°, what is
     left is what a start from a few degrees off leaves (< 0.005°); the history before the restart is
     the first pass's."""
     cfg = GnssAlignConfig.for_imu_grade("kvh1760")

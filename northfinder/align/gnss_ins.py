@@ -276,7 +276,6 @@ class _ErrorStateFilter:
 
     method = "?"
     n_att = 0
-    restarts = False  # run_alignment may restart it from a wide heading prior
 
     def __init__(self, ins: Strapdown, config: GnssAlignConfig, initial_heading_rad: float):
         self.ins = ins
@@ -514,7 +513,6 @@ class SinCosFilter(_ErrorStateFilter):
 
     method = "sincos"
     n_att = 4
-    restarts = True
 
     def attitude_prior(self, heading_rad: float) -> np.ndarray:
         """Second moments of (sin δψ, 1 − cos δψ) for δψ ~ N(0, σ²) or uniform, rotated into η."""
@@ -651,41 +649,64 @@ def coarse_level(dv_m_s: np.ndarray) -> tuple[float, float]:
 
 @dataclass
 class _Pass:
-    """One filter pass over the fixes: its update rows, the filter as it ended, its start state."""
+    """One filter pass over the fixes: its update rows, the filter as it ended, its start time."""
 
     rows: list
     flt: _ErrorStateFilter
-    start: NavState
+    start_s: float
     stopped_early: bool
 
 
-def _run_pass(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_deg: float,
-              cfg: GnssAlignConfig, stop_below_deg: float | None = None) -> _Pass:
+@dataclass(frozen=True)
+class _PassData:
+    """What every pass reads: the IMU increments (lost samples filled) and their gap variance, the
+    fixes after the levelling window in time order, the levelling window's length in samples."""
+
+    dth: np.ndarray
+    dv: np.ndarray
+    gaps: tuple[np.ndarray, np.ndarray] | None
+    imu_t0_s: float
+    rate_hz: float
+    order: np.ndarray
+    k_level: int
+    gnss: GnssSeries
+
+    @classmethod
+    def of(cls, imu: ImuSeries, gnss: GnssSeries, level_s: float) -> _PassData:
+        dth, dv = imu.increments()
+        rate = float(imu.rate_hz)
+        n_imu = dth.shape[0]
+        t_fix = np.asarray(gnss.t_s, dtype=float)
+        order = np.argsort(t_fix)
+        k_level = int(round(level_s * rate))
+        if k_level < 1 or k_level > n_imu:
+            raise InputError(f"level_s={level_s} s needs IMU data; the IMU covers {n_imu / rate:.1f} s")
+        t_start_min = imu.t0_s + k_level / rate
+        order = order[t_fix[order] >= t_start_min - 1e-9]
+        if len(order) < 2:
+            raise InputError(
+                "GNSS: fewer than 2 fixes after the levelling window — check the receiver has a fix"
+            )
+        return cls(dth, dv, imu.gap_variance(), float(imu.t0_s), rate, order, k_level, gnss)
+
+
+def _run_pass(filter_cls, data: _PassData, initial_heading_deg: float, cfg: GnssAlignConfig,
+              stop_below_deg: float | None = None) -> _Pass:
     """Level on the still start, then run the filter over the fixes: to the end, or to the first update
     whose heading 1σ is below `stop_below_deg`."""
-    dth, dv = imu.increments()
-    gaps = imu.gap_variance()
-    rate = float(imu.rate_hz)
-    n_imu = dth.shape[0]
+    dth, dv, gaps, rate, gnss, order = data.dth, data.dv, data.gaps, data.rate_hz, data.gnss, data.order
+    n_imu, k_level = dth.shape[0], data.k_level
     t_fix = np.asarray(gnss.t_s, dtype=float)
-    order = np.argsort(t_fix)
-    # first fix after the levelling window that the IMU covers
-    k_level = int(round(cfg.level_s * rate))
-    if k_level < 1 or k_level > n_imu:
-        raise InputError(f"level_s={cfg.level_s} s needs IMU data; the IMU covers {n_imu / rate:.1f} s")
-    t_start_min = imu.t0_s + k_level / rate
-    order = order[t_fix[order] >= t_start_min - 1e-9]
-    if len(order) < 2:
-        raise InputError("GNSS: fewer than 2 fixes after the levelling window — check the receiver has a fix")
     pitch, roll = coarse_level(dv[:k_level])
     psi0 = math.radians(initial_heading_deg)
     c0 = dcm_from_euler(psi0, pitch, roll)
     origin = gnss.local_level()
     j0 = order[0]
     la0 = np.asarray(cfg.lever_arm_b_m, float)
-    k_cur = int(math.floor((t_fix[j0] - imu.t0_s) * rate + 1e-9))
-    state = NavState(gnss.pos_enu_m[j0] - c0 @ la0, gnss.vel_enu_m_s[j0].copy(), c0, imu.t0_s + k_cur / rate)
-    start = NavState(state.pos_enu_m.copy(), state.v_enu_m_s.copy(), c0.copy(), state.t_s)
+    k_cur = int(math.floor((t_fix[j0] - data.imu_t0_s) * rate + 1e-9))
+    state = NavState(gnss.pos_enu_m[j0] - c0 @ la0, gnss.vel_enu_m_s[j0].copy(), c0,
+                     data.imu_t0_s + k_cur / rate)
+    start_s = state.t_s
     ins = Strapdown(state, rate, origin)
     ins._prev_dtheta, ins._prev_dv = dth[k_cur - 1].copy(), dv[k_cur - 1].copy()
     flt = filter_cls(ins, cfg, psi0)
@@ -701,7 +722,7 @@ def _run_pass(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_deg:
     flt.P[flt.LA, P_] = flt.P[P_, flt.LA].T
     rows = []
     for j in order[1:]:
-        k_to = min(int(math.floor((t_fix[j] - imu.t0_s) * rate + 1e-9)), n_imu)
+        k_to = min(int(math.floor((t_fix[j] - data.imu_t0_s) * rate + 1e-9)), n_imu)
         if k_to <= k_cur:
             continue
         summary = ins.propagate(dth[k_cur:k_to], dv[k_cur:k_to])
@@ -714,10 +735,10 @@ def _run_pass(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_deg:
                        t_fix[j] - ins.state.t_s)
         rows.append(_snapshot(flt, z))
         if stop_below_deg is not None and rows[-1][2] < stop_below_deg:
-            return _Pass(rows, flt, start, True)
+            return _Pass(rows, flt, start_s, True)
         if k_cur >= n_imu:
             break
-    return _Pass(rows, flt, start, False)
+    return _Pass(rows, flt, start_s, False)
 
 
 def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_deg: float,
@@ -731,27 +752,28 @@ def run_alignment(filter_cls, imu: ImuSeries, gnss: GnssSeries, initial_heading_
     large corrections (up to 180° in a second) leave errors in the tilt and the accelerometer bias that
     the linearized covariance does not hold (a noise-free run from 150° off: −0.028° at 30 s of motion,
     0.54σ, for every seed alike), so from an unknown start the σ was too small at 30–120 s; a start
-    within a few degrees leaves none (docs/gnss-alignment.md §13). Only a filter whose `restarts` is set
-    restarts (the sin/cos filter; the small-angle one is the comparison, run as it is). The history is
+    within a few degrees leaves none (docs/gnss-alignment.md §13). `restart_below_deg` None: one pass
+    (align_gnss_small_angle runs the comparison filter so). The history is
     the first pass's up to the restart and the second's after it: each row uses only the data up to its
     time. The second pass uses the data before the restart twice; with a prior of 2σ that adds a quarter
     of the information it holds (its σ there 0.89 × the first pass's), and by convergence (σ < 1°
     against a ≥ 5° prior) under 4 %."""
     cfg = config or GnssAlignConfig()
-    if getattr(filter_cls, "restarts", False) and _starts_wide(cfg):
-        first = _run_pass(filter_cls, imu, gnss, initial_heading_deg, cfg, cfg.restart_below_deg)
+    data = _PassData.of(imu, gnss, cfg.level_s)
+    if _starts_wide(cfg):
+        first = _run_pass(filter_cls, data, initial_heading_deg, cfg, cfg.restart_below_deg)
         if not first.stopped_early:
             return _result(first, cfg, None)
         t_c, coarse_deg, coarse_std = first.rows[-1][0:3]  # _snapshot: t, heading, its 1σ
         psi2 = (initial_heading_deg + math.degrees(first.flt.heading_moved_rad)) % 360.0
         prior_std = cfg.restart_prior_factor * coarse_std
-        second = _run_pass(filter_cls, imu, gnss, psi2, replace(cfg, heading_std_deg=prior_std))
+        second = _run_pass(filter_cls, data, psi2, replace(cfg, heading_std_deg=prior_std))
         second.rows = first.rows + [r for r in second.rows if r[0] > t_c + 1e-9]
         restart = {"t_s": float(t_c), "coarse_heading_deg": float(coarse_deg),
                    "coarse_std_deg": float(coarse_std), "initial_heading_deg": float(psi2),
                    "prior_std_deg": float(prior_std)}
         return _result(second, cfg, restart)
-    return _result(_run_pass(filter_cls, imu, gnss, initial_heading_deg, cfg), cfg, None)
+    return _result(_run_pass(filter_cls, data, initial_heading_deg, cfg), cfg, None)
 
 
 def _starts_wide(cfg: GnssAlignConfig) -> bool:
@@ -771,7 +793,7 @@ def _result(run: _Pass, cfg: GnssAlignConfig, restart: dict | None) -> GnssAlign
         converged = None
     else:
         first = above[-1] + 1 if len(above) else 0
-        converged = float(hist.t_s[first] - run.start.t_s)
+        converged = float(hist.t_s[first] - run.start_s)
     return GnssAlignResult(
         method=run.flt.method,
         heading_deg=float(hist.heading_deg[-1]),
@@ -784,7 +806,7 @@ def _result(run: _Pass, cfg: GnssAlignConfig, restart: dict | None) -> GnssAlign
         accel_bias_ug=hist.accel_bias_ug[-1].copy(),
         pos_enu_m=hist.pos_enu_m[-1].copy(),
         converged_after_s=converged,
-        start_s=run.start.t_s,
+        start_s=run.start_s,
         history=hist,
         extra={"noise_source": cfg.noise_source, "gyro_arw_deg_sqrt_h": cfg.gyro_arw_deg_sqrt_h,
                "accel_vrw_ug_sqrt_hz": cfg.accel_vrw_ug_sqrt_hz},

@@ -44,7 +44,7 @@ from northfinder.constants import (
     wrap_deg_180,
 )
 from northfinder.errors import InputError
-from northfinder.rotations import coning_corrected_rotvec, euler_from_dcm, skew
+from northfinder.rotations import coning_corrected_rotvec, euler_from_dcm, rotvec_to_dcm, skew
 
 __all__ = [
     "SwayingSolution",
@@ -304,6 +304,10 @@ class _LeverModel:
     """G_j [m,3,3] [1/s²]: the windows' second derivative of C_b^{i_b0}(t) (`_lever_kernels`)."""
     ridge: float
 
+    def force(self, r: np.ndarray) -> np.ndarray:
+        """G_j·r [m,3]: each window's lever-arm specific force for the arm r [m]."""
+        return np.einsum("jik,k->ji", self.g, r)
+
 
 def _lever_model(
     q: np.ndarray,
@@ -361,20 +365,12 @@ def _fit_cone_lever(f_ib0, m_n0, lever: _LeverModel, iterations: int = 3):
     m_skew, g_rows = skew(m_n0), lever.g.reshape(-1, 3)
     for _ in range(iterations):
         a = np.concatenate([-(c @ m_skew).reshape(-1, 3), g_rows], axis=1)
-        res = (f_ib0 - m_n0 @ c.T - np.einsum("jik,k->ji", lever.g, r)).ravel()
+        res = (f_ib0 - m_n0 @ c.T - lever.force(r)).ravel()
         step = np.linalg.lstsq(np.vstack([a, prior]), np.concatenate([res, -np.sqrt(lever.ridge) * r]),
                                rcond=None)[0]
-        c = c @ _rotation(step[:3])
+        c = c @ rotvec_to_dcm(step[:3])
         r = r + step[3:]
     return c, r
-
-
-def _rotation(delta: np.ndarray) -> np.ndarray:
-    """exp([δ×]) by Rodrigues' formula (small δ safe)."""
-    ang = np.linalg.norm(delta)
-    kx = skew(delta)
-    return np.eye(3) + (np.sin(ang) / ang if ang > 0 else 1.0) * kx + \
-        ((1 - np.cos(ang)) / ang**2 if ang > 0 else 0.5) * (kx @ kx)
 
 
 def _fit_circle(f_ib0, t_win_s, t_end_s, latitude_rad):
@@ -417,7 +413,7 @@ def _gls_whitening(
         res0 = f_win - m_win @ _wahba(f_win, m_win).T
     else:
         c0, r0 = _fit_cone_lever(f_win, m_win, lever)
-        res0 = f_win - m_win @ c0.T - np.einsum("jik,k->ji", lever.g, r0)
+        res0 = f_win - m_win @ c0.T - lever.force(r0)
     sigma_f += np.eye(3 * m) * np.mean(res0**2)
     return np.linalg.inv(np.linalg.cholesky(sigma_f))
 
@@ -448,7 +444,7 @@ def _solver(
             c_ib0_nt = _earth_rotation_n0_to_nt(t_end, lat) @ c_n0_ib0.T
             axis = c_n0_ib0 @ np.array([0.0, np.cos(lat), np.sin(lat)])
         if method == "cone-gls":
-            f_sway_free = f if lever is None else f - np.einsum("jik,k->ji", lever.g, r)
+            f_sway_free = f if lever is None else f - lever.force(r)
             c_ib0_nt, axis = _gls_step(f_sway_free, m_win, c_ib0_nt, t_end, lat, whiten)
         tweak = np.eye(3) if dphi_end is None else np.eye(3) - skew(dphi_end)
         return c_ib0_nt @ tweak @ c_b_ib0_end, axis, r
@@ -644,7 +640,7 @@ def align_swaying(
     residual = None  # the circle fit has no residual model
     if method != "circle":
         cone = (c_b_ib0_end @ c_b_n.T @ _earth_rotation_n0_to_nt(t_end, lat) @ m_win.T).T
-        residual = f_win - cone - (0.0 if lever is None else np.einsum("jik,k->ji", lever.g, lever_m))
+        residual = f_win - cone - (0.0 if lever is None else lever.force(lever_m))
     parts = _angle_cov_parts(solve, f_win, residual, noise, lever)
     std = np.sqrt(np.maximum(np.diag(sum(parts.values())), 0.0))
     diag = _diagnostics(
@@ -864,7 +860,7 @@ def _gls_step(f_win, m_n0, c_ib0_nt, t_end_s, lat, whiten):
     aw = whiten @ a
     rw = whiten @ r
     delta = np.linalg.lstsq(aw, rw, rcond=None)[0]
-    c_n0_ib0 = c_n0_ib0 @ _rotation(delta)
+    c_n0_ib0 = c_n0_ib0 @ rotvec_to_dcm(delta)
     axis = c_n0_ib0 @ np.array([0.0, np.cos(lat), np.sin(lat)])
     return r_nt @ c_n0_ib0.T, axis
 
