@@ -27,7 +27,7 @@ IMU_AXES_ALIASES = {"gyro-1axis": "y", "gyro-3axis": "xyz", "gyro-accel": "xyz+a
 IMU_AXES_HELP = "gyro axis letters then optional +acc, e.g. xyz+acc (default), xyz, y, xy, xy+acc"
 IMU_RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
 CAN_INTERFACES = ("slcan", "virtual", "socketcan")
-GRADES = ("nav", "kvh1760", "tactical-mems", "consumer")
+GRADES = ("nav", "kvh1760", "tactical-mems", "consumer", "stim300")
 SCENARIOS = ("bench", "ship", "vehicle")
 SWAY_AXES = ("roll", "pitch", "yaw", "surge", "sway", "heave")
 """roll, pitch, yaw in degrees; surge (along the mean heading), sway (to its right), heave (up) in m."""
