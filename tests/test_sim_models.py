@@ -249,7 +249,7 @@ def test_stim_datagrams_measure_the_world_and_service_mode_names_the_unit():
 def test_cia410_node_with_canopen_master(eds):
     channel = f"cia410-{id(eds)}"
     dev_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-    world = _world(pitch_deg=2.0, roll_deg=-1.0)
+    world = _world(pitch_deg=2.0, roll_deg=-1.0, stage_power_on_deg=0.0)  # b = p: table at α = 0
     node_dev = Cia410Node(dev_bus, world, None, node_id=0x20, event_ms=10)
     loop = Loop([node_dev], scale=2.0)
     loop.start()
