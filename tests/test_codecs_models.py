@@ -58,18 +58,21 @@ def test_apt_decoder_reads_every_example_and_the_info_fields():
     assert dec.stats.skipped_bytes == 0 and dec.pending_bytes == 0
     v = _apt_by_name("HW_GET_INFO")
     info = apt.parse_hw_info(msgs[-1].data)
-    assert (info.serial_number, info.model, info.hw_type, list(info.firmware), info.hw_version, info.mod_state,
-            info.channels) == (v["serial_number"], v["model"], v["hw_type"], v["firmware"], v["hw_version"],
-                               v["mod_state"], v["channels"])
+    got = (info.serial_number, info.model, info.hw_type, list(info.firmware), info.hw_version,
+           info.mod_state, info.channels)
+    keys = ("serial_number", "model", "hw_type", "firmware", "hw_version", "mod_state", "channels")
+    assert got == tuple(v[k] for k in keys)
     assert apt.parse_hw_info(apt.encode_hw_info(info)) == info
-    assert sim_apt.packet(0x0006, apt.encode_hw_info(info), dest=0x01, source=0x22).hex().startswith("06005400")
+    sim_packet = sim_apt.packet(0x0006, apt.encode_hw_info(info), dest=0x01, source=0x22)
+    assert sim_packet.hex().startswith("06005400")
 
 
 def test_apt_prm1z8_scaling_is_the_protocol_table():
     # APT §8 p. 39: PRM1-Z8 velocity 42941.66 per °/s, acceleration 14.66 per °/s²
     assert apt.velocity_from_deg_s(1.0) == 42942 and apt.acceleration_from_deg_s2(100.0) == 1466
     assert math.isclose(apt.deg_s_from_velocity(apt.velocity_from_deg_s(10.0)), 10.0, rel_tol=1e-5)
-    assert apt.counts_from_deg(360.0) == 691071 and math.isclose(apt.deg_from_counts(691071), 360.0, abs_tol=1e-3)
+    assert apt.counts_from_deg(360.0) == 691071
+    assert math.isclose(apt.deg_from_counts(691071), 360.0, abs_tol=1e-3)
     assert sim_apt.VEL_SCALE == pytest.approx(42941.66, abs=0.01)
     assert sim_apt.ACC_SCALE == pytest.approx(14.66, abs=0.01)
 
@@ -146,7 +149,8 @@ def test_stim_serial_datagram_and_service_listing():
     assert stim.parse_serial_datagram(bytes.fromhex(v["hex"])) == v["serial"]
     imu = object.__new__(sim_stim.StimImu)
     assert imu.serial_datagram().hex() == v["hex"]
-    listing = ("SERIAL NUMBER = N25582405002002\r\nPRODUCT = STIM300\r\nPART NUMBER = 84167-4400003-321 REV K\r\n"
+    listing = ("SERIAL NUMBER = N25582405002002\r\nPRODUCT = STIM300\r\n"
+               "PART NUMBER = 84167-4400003-321 REV K\r\n"
                "SAMPLE RATE [samples/s] = 2000\r\n")
     ident = stim.identity_from_listing(listing)
     assert (ident.product, ident.serial_number, ident.sample_rate_hz) == ("STIM300", "N25582405002002", 2000)
@@ -203,7 +207,7 @@ def test_cia410_tpdo_and_operating_parameter():
 
 
 def test_cia410_sdo_upload_vector_against_the_simulated_dictionary():
-    from firmware_sim.devices.canopen_accel import SdoServer, STATE_PRE_OPERATIONAL
+    from firmware_sim.devices.canopen_accel import STATE_PRE_OPERATIONAL, SdoServer
     from firmware_sim.devices.cia410 import build_od
 
     v = MODELS["cia410"]["sdo_upload_resolution"]

@@ -202,7 +202,8 @@ def test_stim_datagrams_measure_the_world_and_service_mode_names_the_unit():
         while len(raw) < 38 * (n + 2) and time.monotonic() < deadline:
             raw += port.read(38 * 200)
         start = raw.find(b"\x93")
-        while _crc_bitwise(raw[start : start + 34] + b"\0\0") != int.from_bytes(raw[start + 34 : start + 38], "big"):
+        while _crc_bitwise(raw[start : start + 34] + b"\0\0") != int.from_bytes(raw[start + 34 : start + 38],
+                                                                                 "big"):
             start = raw.find(b"\x93", start + 1)
         rows = [_parse_0x93(raw[start + 38 * i : start + 38 * (i + 1)]) for i in range(n)]
         counters = np.array([r[3] for r in rows])
@@ -292,3 +293,58 @@ def test_cia410_node_with_canopen_master(eds):
         network.disconnect()
         loop.close()
         dev_bus.shutdown()
+
+
+# ---------------------------------------------------------------------------------------------
+# The simulator with the second models: one world under APT + STIM + CiA 410 (slcan adapter)
+# ---------------------------------------------------------------------------------------------
+def test_mixed_bench_apt_stim_cia410_on_the_simulator():
+    from firmware_sim.simulator import Simulator
+
+    sim = Simulator(SimConfig(seed=3, time_scale=5.0, latitude_deg=40.0, grade="stim300", stage_model="apt",
+                              imu_model="stim", tilt_model="cia410", imu_rate_hz=500, accel_rate_hz=50.0))
+    ep = sim.start()
+    try:
+        stage = AptClient(ep["turntable"])
+        stage.send(0x0005)
+        assert struct.unpack_from("<8s", stage.wait(0x0006), 10)[0].rstrip(b"\0") == b"KDC101"
+        stage.port.close()
+        imu = serial.Serial(ep["imu"], 921600, timeout=0.2)
+        raw = b""
+        deadline = time.monotonic() + 30
+        while raw.count(b"\x93") < 50 and time.monotonic() < deadline:
+            raw += imu.read(4096)
+        imu.close()
+        start = raw.find(b"\x93")
+        while _crc_bitwise(raw[start : start + 34] + b"\0\0") != int.from_bytes(raw[start + 34 : start + 38],
+                                                                                 "big"):
+            start = raw.find(b"\x93", start + 1)
+        assert _parse_0x93(raw[start : start + 38])[4] == 0
+        bus = can.Bus(interface="slcan", channel=ep["can"]["channel"], bitrate=ep["can"]["bitrate"],
+                      sleep_after_open=0.0)
+        try:
+            first = bus.recv(timeout=10.0)
+            assert first is not None and (first.arbitration_id, bytes(first.data)) == (0x710, b"\x00")
+            bus.send(can.Message(arbitration_id=0x000, data=[0x01, 0x10], is_extended_id=False))
+            slopes = []
+            deadline = time.monotonic() + 20
+            while len(slopes) < 20 and time.monotonic() < deadline:
+                msg = bus.recv(timeout=1.0)
+                if msg is not None and msg.arbitration_id == 0x190:
+                    slopes.append(struct.unpack("<hh", bytes(msg.data)))
+        finally:
+            bus.shutdown()
+        assert len(slopes) == 20
+        # level platform: both slopes within the stim300 accelerometer's bias (≤ 0.8 mg ≈ 0.046°)
+        assert max(abs(s) for pair in slopes for s in pair) * 1e-3 < 0.06
+    finally:
+        sim.stop()
+
+
+def test_model_names_are_checked():
+    from firmware_sim.config import ConfigError
+
+    with pytest.raises(ConfigError, match="stage_model"):
+        SimConfig(stage_model="k10cr1")
+    with pytest.raises(ConfigError, match="STIM samples"):
+        SimConfig(imu_model="stim", imu_rate_hz=750)

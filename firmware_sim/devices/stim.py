@@ -180,7 +180,8 @@ class StimImu(Device):
     def part_number_datagram(self) -> bytes:
         """0xB1 with the part number's digits in nibbles (Table 5-13), revision byte 'K'."""
         d = [int(c) for c in PART_NUMBER.split()[0] if c.isdigit()]  # 84167 4400003 321
-        body = bytes([0xB1, d[0], d[1] << 4 | d[2], d[3] << 4 | d[4], 0x2D, d[5] << 4 | d[6], d[7] << 4 | d[8],
+        body = bytes([0xB1, d[0], d[1] << 4 | d[2], d[3] << 4 | d[4], 0x2D, d[5] << 4 | d[6],
+                      d[7] << 4 | d[8],
                       d[9] << 4 | d[10], 0x2D, d[12] << 4 | d[13], d[14] << 4, d[11], 0, 0, 0, ord("K")])
         return seal(body)
 
@@ -210,10 +211,11 @@ class StimImu(Device):
             rows += [pack24(acc_out * ACC10_SCALE[self.accel_unit]), status[:, None]]
         if self.has_incl:
             rows += [pack24(incl / (dt * G0) * INCL_SCALE), status[:, None]]
-        rows += [counter.astype(np.uint8)[:, None], np.full((n, 2), (LATENCY_US >> 8, LATENCY_US & 0xFF), np.uint8)]
+        latency = np.full((n, 2), (LATENCY_US >> 8, LATENCY_US & 0xFF), np.uint8)
+        rows += [counter.astype(np.uint8)[:, None], latency]
         bodies = np.concatenate(rows, axis=1)
         out = bytearray()
-        for i, body in enumerate(bodies):
+        for body in bodies:
             if self._special:
                 out += self._special.pop(0)  # a special datagram replaces this sample (TS1524 §8.1)
                 continue

@@ -157,7 +157,8 @@ def deg_s2_from_acceleration(acc_apt: int) -> float:
 # ---------------------------------------------------------------------------------------------
 # Encoding
 # ---------------------------------------------------------------------------------------------
-def header_only(msg_id: int, param1: int = 0, param2: int = 0, dest: int = USB_UNIT, source: int = HOST) -> bytes:
+def header_only(msg_id: int, param1: int = 0, param2: int = 0, dest: int = USB_UNIT,
+                source: int = HOST) -> bytes:
     """A 6-byte header-only message (APT §4)."""
     return struct.pack("<HBBBB", msg_id, param1 & 0xFF, param2 & 0xFF, dest & 0x7F, source & 0xFF)
 
@@ -247,7 +248,8 @@ class HwInfo:
 
     def describe(self) -> str:
         major, interim, minor = self.firmware
-        return f"Thorlabs {self.model} s/n {self.serial_number} fw {major}.{interim}.{minor} hw {self.hw_version}"
+        fw = f"{major}.{interim}.{minor}"
+        return f"Thorlabs {self.model} s/n {self.serial_number} fw {fw} hw {self.hw_version}"
 
 
 @dataclass(frozen=True)

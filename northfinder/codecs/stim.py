@@ -133,7 +133,8 @@ class StimUnits:
 
 
 def encode_datagrams(datagram_id: int, gyro: np.ndarray, status_gyro: np.ndarray | int, counter: np.ndarray,
-                     latency_us: np.ndarray | int, units: StimUnits = StimUnits(), accel: np.ndarray | None = None,
+                     latency_us: np.ndarray | int, units: StimUnits = StimUnits(),
+                     accel: np.ndarray | None = None,
                      status_accel: np.ndarray | int = 0, incl: np.ndarray | None = None,
                      status_incl: np.ndarray | int = 0, crlf: bool = False) -> bytes:
     """n datagrams from values in the configured units (°/s or °, g or m/s); temperatures read 25 °C
@@ -232,7 +233,7 @@ class StimDecoder:
     def __init__(self, datagram_id: int = 0x93, units: StimUnits = StimUnits(), rate_hz: int = 500,
                  crlf: bool = False) -> None:
         if datagram_id not in DATAGRAM_CONTENT:
-            raise ValueError(f"0x{datagram_id:02X} is not a normal-mode datagram identifier (TS1524 Table 5-21)")
+            raise ValueError(f"0x{datagram_id:02X}: not a normal-mode datagram id (TS1524 Table 5-21)")
         self.datagram_id = datagram_id
         self.units = units
         self.layout = layout(datagram_id)
@@ -292,7 +293,8 @@ class StimDecoder:
         out = _empty(n)
         out.gyro = _int24(dg[:, 1:10].reshape(-1, 3)).reshape(n, 3) / self.units.gyro_lsb()
         out.status[:, 0] = dg[:, 10]
-        for k, (name, lsb) in enumerate((("acc", self.units.accel_lsb()), ("incl", self.units.incl_lsb())), 1):
+        clusters = (("acc", self.units.accel_lsb()), ("incl", self.units.incl_lsb()))
+        for k, (name, lsb) in enumerate(clusters, 1):
             if name in lay:
                 block = dg[:, lay[name] : lay[name] + 9].reshape(-1, 3)
                 setattr(out, "accel" if name == "acc" else "incl", _int24(block).reshape(n, 3) / lsb)
@@ -306,7 +308,9 @@ class StimDecoder:
     def _count(self, s: StimSamples) -> None:
         self.stats.datagrams += len(s)
         self.stats.invalid_samples += int(np.count_nonzero(s.status.any(axis=1)))
-        counters = s.counter if self._last_counter is None else np.concatenate(([self._last_counter], s.counter))
+        counters = s.counter
+        if self._last_counter is not None:
+            counters = np.concatenate(([self._last_counter], s.counter))
         steps = np.diff(counters) % 256
         self.stats.counter_gaps += int(np.sum(np.maximum(steps - self.counter_step, 0)))
         self._last_counter = int(s.counter[-1])
