@@ -348,3 +348,45 @@ def test_model_names_are_checked():
         SimConfig(stage_model="k10cr1")
     with pytest.raises(ConfigError, match="STIM samples"):
         SimConfig(imu_model="stim", imu_rate_hz=750)
+
+
+def test_stim_faults_crc_and_invalid_rate_are_what_the_decoder_counts():
+    """imu-crc-rate spoils the CRC of that share of datagrams, imu-invalid-rate flags the channel
+    error in all three STATUS bytes; northfinder's decoder counts both (device driven by hand)."""
+    from types import SimpleNamespace
+
+    from northfinder.codecs import stim as codec
+
+    faults = SimpleNamespace(imu_crc_rate=0.1, imu_invalid_rate=0.05)
+    imu = StimImu(_world(), rate_hz=500, faults=faults, fault_seed=7)
+    port = serial.Serial(imu.endpoint(), 921600, timeout=0.2)
+    try:
+        dec = codec.StimDecoder(0x93, codec.StimUnits("increment", "increment"), rate_hz=500)
+        good = 0
+        invalid = 0
+        for step in range(1, 21):  # 20 × 0.1 s of device time, 50 datagrams each
+            imu.advance(step * 0.1)
+            raw = b""
+            while len(raw) < 38 * 50:
+                chunk = port.read(38 * 50 - len(raw))
+                assert chunk, "the device wrote less than it produced"
+                raw += chunk
+            s = dec.feed(raw)
+            if good == 0 and len(s):
+                first_counter = int(s.counter[0])  # datagram k carries 4·k: spoiled before it show no gap
+            good += len(s)
+            if len(s):
+                last_counter = int(s.counter[-1])
+            invalid += int((~s.valid(0)).all(axis=1).sum())
+    finally:
+        port.close()
+        imu.close()
+    spoiled = dec.stats.skipped_bytes // 38  # every byte of a spoiled datagram is skipped
+    assert good + spoiled == 1000 and dec.stats.skipped_bytes % 38 == 0
+    assert 60 <= spoiled <= 140  # 10 % of 1000, binomial ±4σ
+    assert spoiled - 15 <= dec.stats.crc_errors <= spoiled  # two in a row count once
+    lost_at_start = first_counter // 4 - 1
+    lost_at_end = (4 * 1000 - last_counter) % 256 // 4  # datagram 1000 carries 4000 mod 256
+    unseen = lost_at_start + lost_at_end  # no good datagram on one side: no gap to see
+    assert dec.stats.counter_gaps == 4 * (spoiled - unseen)  # 4 internal samples per datagram
+    assert 15 <= invalid <= 85 and invalid == dec.stats.invalid_samples  # 5 % of the good ones

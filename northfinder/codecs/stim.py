@@ -174,6 +174,8 @@ class StimStats:
 
     datagrams: int = 0
     crc_errors: int = 0
+    """Damaged stretches: a candidate whose CRC fails, up to the next good datagram (so two
+    damaged datagrams in a row count once; the counter gap says how many samples were lost)."""
     skipped_bytes: int = 0
     identity_datagrams: int = 0
     invalid_samples: int = 0
@@ -244,6 +246,7 @@ class StimDecoder:
         self._buf = bytearray()
         self._offset = 0
         self._last_counter: int | None = None
+        self._resyncing = False
 
     @property
     def pending_bytes(self) -> int:
@@ -264,8 +267,11 @@ class StimDecoder:
                 if stim_crc(bytes(buf[i : i + body_len])) == crc:
                     rows.append(i)
                     i += self.size
+                    self._resyncing = False
                     continue
-                self.stats.crc_errors += 1
+                if not self._resyncing:  # one count per damaged stretch, not per false start in it
+                    self.stats.crc_errors += 1
+                    self._resyncing = True
             elif b0 in (PART_NUMBER_ID, SERIAL_NUMBER_ID):
                 if len(buf) - i < IDENTITY_DATAGRAM_BYTES:
                     break
