@@ -101,6 +101,8 @@ class StimImu(Device):
         self.rate_hz = int(rate_hz)
         self.datagram_id = datagram_id
         self.has_acc, self.has_incl = CONTENT[datagram_id]
+        self.axes = "xyz+acc" if self.has_acc else "xyz"
+        """The unit's axes in the KVH device's notation (the truth log's header names them)."""
         self.gyro_unit, self.accel_unit = gyro_unit, accel_unit
         self.product = product
         self.lever_arm_b_m = np.asarray(lever_arm_b_m, dtype=float)
