@@ -480,8 +480,11 @@ class Simulator:
         cfg = self.config
         rate = cfg.imu_rate_hz if cfg.imu_rate_hz in (125, 250, 500, 1000, 2000) else 500
         gyro, accel = make_models(rate)
+        stall_s = CLIENT_STALL_WALL_S + cfg.link_hold_ms / 1e3
+        backlog = max(64 * 1024, int(38 * rate * cfg.time_scale * stall_s))  # 38 B per 0x93 datagram
         return StimImu(self.world, gyro, accel, rate_hz=rate, lever_arm_b_m=cfg.imu_lever_arm_m,
-                       faults=cfg.faults, fault_seed=streams[_STREAM_IMU_FAULTS])
+                       faults=cfg.faults, fault_seed=streams[_STREAM_IMU_FAULTS],
+                       port=PtyPort("imu", backlog_bytes=backlog))
 
     def _build_cia410(self, node_bus: Any, accel_model: Any, remodel: Any) -> Any:
         """A CiA 410 inclinometer node; its event timer is the accelerometer rate's period."""

@@ -390,3 +390,15 @@ def test_stim_faults_crc_and_invalid_rate_are_what_the_decoder_counts():
     unseen = lost_at_start + lost_at_end  # no good datagram on one side: no gap to see
     assert dec.stats.counter_gaps == 4 * (spoiled - unseen)  # 4 internal samples per datagram
     assert 15 <= invalid <= 85 and invalid == dec.stats.invalid_samples  # 5 % of the good ones
+
+
+def test_cli_flags_choose_the_models():
+    from firmware_sim.cli import build_parser, config_from_args
+
+    cfg = config_from_args(build_parser().parse_args(["--stage", "apt", "--imu", "stim", "--tilt", "cia410",
+                                                      "--grade", "stim300"]))
+    assert (cfg.stage_model, cfg.imu_model, cfg.tilt_model, cfg.grade) == ("apt", "stim", "cia410", "stim300")
+    default = config_from_args(build_parser().parse_args([]))
+    assert (default.stage_model, default.imu_model, default.tilt_model) == ("smc100", "kvh", "nf-accel")
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--stage", "k10cr1"])
