@@ -402,3 +402,24 @@ def test_cli_flags_choose_the_models():
     assert (default.stage_model, default.imu_model, default.tilt_model) == ("smc100", "kvh", "nf-accel")
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--stage", "k10cr1"])
+
+
+def test_apt_device_skips_junk_and_still_answers():
+    """Random bytes before a request (no checksum in APT: the device resynchronises on a header
+    addressed to it from the host) cost counted bytes, never the dialogue."""
+    stage = AptStage(_world())
+    port = serial.Serial(stage.endpoint(), 115200, timeout=0.5)
+    try:
+        junk = np.random.default_rng(3).integers(0, 256, 300, dtype=np.uint8).tobytes()
+        junk = junk.replace(b"\x01", b"\x02")  # no host source byte: no false header in the junk
+        port.write(junk + struct.pack("<HBBBB", 0x0005, 0, 0, 0x50, 0x01))
+        deadline = time.monotonic() + 10
+        while stage.messages_in == 0 and time.monotonic() < deadline:
+            select.select([stage.port.master_fd], [], [], 0.1)
+            stage.on_readable(0.0)
+        reply = port.read(90)
+        assert reply[:2] == b"\x06\x00" and len(reply) == 90
+        assert stage.bad_bytes == len(junk) and stage.messages_in == 1
+    finally:
+        port.close()
+        stage.close()
