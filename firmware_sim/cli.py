@@ -153,6 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(order kept); per device: imu=MS:J,gnss=MS:J")
     p.add_argument("--stage-speed", type=float, metavar="DEG_S", help="SMC100 move (and homing) speed, deg/s")
     p.add_argument("--stage-accel", type=float, metavar="DEG_S2", help="SMC100 acceleration, deg/s²")
+    p.add_argument("--stage", choices=("smc100", "apt"), help="rotation stage model (default smc100)")
+    p.add_argument("--imu", choices=("kvh", "stim"), help="IMU model (default kvh)")
+    p.add_argument("--tilt", choices=("nf-accel", "cia410"), help="tilt sensor on CAN (nf-accel)")
     p.add_argument("--truth-log", metavar="PATH", help="write the truth as JSON lines (docs/simulator.md)")
     p.add_argument("--truth-rate", type=float, metavar="HZ", help="truth samples per device second (50)")
     p.add_argument("--config", metavar="FILE.toml", help="the other settings (keys as SimConfig)")
@@ -183,7 +186,8 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
                       ("time_scale", "time_scale"), ("scenario", "scenario"), ("imu_rate", "imu_rate_hz"),
                       ("truth_log", "truth_log"), ("truth_rate", "truth_rate_hz"), ("imu_axes", "imu_axes"),
                       ("stage_speed", "stage_speed_dps"), ("stage_accel", "stage_accel_dps2"),
-                      ("accel_rate", "accel_rate_hz"), ("accel_mapping", "accel_mapping")):
+                      ("accel_rate", "accel_rate_hz"), ("accel_mapping", "accel_mapping"),
+                      ("stage", "stage_model"), ("imu", "imu_model"), ("tilt", "tilt_model")):
         value = getattr(args, flag)
         if value is not None:
             data[key] = value

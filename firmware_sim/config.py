@@ -27,7 +27,7 @@ IMU_AXES_ALIASES = {"gyro-1axis": "y", "gyro-3axis": "xyz", "gyro-accel": "xyz+a
 IMU_AXES_HELP = "gyro axis letters then optional +acc, e.g. xyz+acc (default), xyz, y, xy, xy+acc"
 IMU_RATES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000)
 CAN_INTERFACES = ("slcan", "virtual", "socketcan")
-GRADES = ("nav", "kvh1760", "tactical-mems", "consumer")
+GRADES = ("nav", "kvh1760", "tactical-mems", "consumer", "stim300")
 SCENARIOS = ("bench", "ship", "vehicle")
 SWAY_AXES = ("roll", "pitch", "yaw", "surge", "sway", "heave")
 """roll, pitch, yaw in degrees; surge (along the mean heading), sway (to its right), heave (up) in m."""
@@ -152,6 +152,13 @@ class SimConfig:
     """Path of the JSON-lines truth log (docs/simulator.md); None: none."""
     truth_rate_hz: float = 50.0
     """Truth samples per device second."""
+    # the model of each role (issue 24): the same physical world under any combination
+    stage_model: str = "smc100"
+    """smc100 (Newport, PROTOCOLS.md §1) | apt (Thorlabs KDC101 + PRM1-Z8, §6)."""
+    imu_model: str = "kvh"
+    """kvh (format A, §2) | stim (Sensonor STIM300/318 normal mode, §7)."""
+    tilt_model: str = "nf-accel"
+    """nf-accel (our CANopen accelerometer, §3) | cia410 (CiA 410 inclinometer, §8)."""
     faults: Faults = field(default_factory=Faults)
 
     def __post_init__(self) -> None:
@@ -254,6 +261,7 @@ def check(cfg: SimConfig) -> None:
         raise ConfigError("truth_log = '': give the path of a file to write, or leave it out")
     check_links(cfg)
     check_motion(cfg)
+    check_models(cfg)
     for name in ("stage_speed_dps", "stage_accel_dps2", "stage_home_speed_dps", "stage_ringing_hz",
                  "encoder_step_deg"):
         value = getattr(cfg, name)
@@ -401,3 +409,22 @@ def load_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"config file {p}: cannot read it ({exc.strerror})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config file {p}: not valid TOML ({exc})") from None
+
+
+STAGE_MODELS = ("smc100", "apt")
+IMU_MODELS = ("kvh", "stim")
+TILT_MODELS = ("nf-accel", "cia410")
+STIM_RATES_HZ = (125, 250, 500, 1000, 2000)
+
+
+def check_models(cfg: SimConfig) -> None:
+    """The model names of the three roles, and what each model allows (docs/PROTOCOLS.md §6–8)."""
+    roles = (("stage_model", STAGE_MODELS), ("imu_model", IMU_MODELS), ("tilt_model", TILT_MODELS))
+    for key, allowed in roles:
+        if getattr(cfg, key) not in allowed:
+            raise ConfigError(f"{key} = {getattr(cfg, key)!r}: use one of {', '.join(allowed)}")
+    if cfg.imu_model == "stim" and cfg.imu_rate_hz is not None and cfg.imu_rate_hz not in STIM_RATES_HZ:
+        raise ConfigError(f"imu_rate_hz = {cfg.imu_rate_hz}: a STIM samples at one of {STIM_RATES_HZ}")
+    if cfg.tilt_model == "cia410" and 1000.0 / cfg.accel_rate_hz != int(1000.0 / cfg.accel_rate_hz):
+        raise ConfigError(f"accel_rate_hz = {cfg.accel_rate_hz}: a CiA 410 node's event timer is whole ms; "
+                          "give 1000 / N Hz")

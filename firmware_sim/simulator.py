@@ -411,7 +411,8 @@ class Simulator:
         if cfg.truth_log:  # first, so that a bad path is refused before any port opens
             self.truth = TruthLog(cfg.truth_log, self, batch_device_s=TRUTH_BATCH_WALL_S * cfg.time_scale)
         if cfg.scenario == "bench":
-            self.turntable = Smc100(self.world, address=cfg.stage_address, stall_move=cfg.faults.stage_stall,
+            self.turntable = self._build_apt() if cfg.stage_model == "apt" else Smc100(
+                                    self.world, address=cfg.stage_address, stall_move=cfg.faults.stage_stall,
                                     on_event=self.truth.event if self.truth is not None else None)
             self.devices.append(self.turntable)
 
@@ -422,7 +423,7 @@ class Simulator:
             accel = self._models(streams[_STREAM_IMU_ACCEL], "accel", rate_hz)
             return gyro, accel
 
-        self.imu = KvhImu(
+        self.imu = self._build_stim(streams, make_imu_models) if cfg.imu_model == "stim" else KvhImu(
             self.world, rate_hz=cfg.imu_rate_hz, axes=cfg.imu_axes, rot_format=cfg.imu_rot_format,
             rot_units=cfg.imu_rot_units, lever_arm_b_m=cfg.imu_lever_arm_m,
             temperature_c=cfg.imu_temperature_c, make_models=make_imu_models, faults=cfg.faults,
@@ -464,6 +465,36 @@ class Simulator:
         return LinkShaper(spec, np.random.default_rng(stream), name=device,
                           on_event=self.truth.event if self.truth is not None else None)
 
+    # -- the second model of each role (issue 24; docs/PROTOCOLS.md §6–8) -----------------------
+    def _build_apt(self) -> Any:
+        """A Thorlabs KDC101 + PRM1-Z8 on the same table."""
+        from firmware_sim.devices.apt import AptStage
+
+        return AptStage(self.world, stall_move=self.config.faults.stage_stall,
+                        on_event=self.truth.event if self.truth is not None else None)
+
+    def _build_stim(self, streams: list[np.random.SeedSequence], make_models: Any) -> Any:
+        """A STIM IMU on the same world, with the grade's error models at its rate."""
+        from firmware_sim.devices.stim import StimImu
+
+        cfg = self.config
+        rate = cfg.imu_rate_hz if cfg.imu_rate_hz in (125, 250, 500, 1000, 2000) else 500
+        gyro, accel = make_models(rate)
+        stall_s = CLIENT_STALL_WALL_S + cfg.link_hold_ms / 1e3
+        backlog = max(64 * 1024, int(38 * rate * cfg.time_scale * stall_s))  # 38 B per 0x93 datagram
+        return StimImu(self.world, gyro, accel, rate_hz=rate, lever_arm_b_m=cfg.imu_lever_arm_m,
+                       faults=cfg.faults, fault_seed=streams[_STREAM_IMU_FAULTS],
+                       port=PtyPort("imu", backlog_bytes=backlog))
+
+    def _build_cia410(self, node_bus: Any, accel_model: Any, remodel: Any) -> Any:
+        """A CiA 410 inclinometer node; its event timer is the accelerometer rate's period."""
+        from firmware_sim.devices.cia410 import Cia410Node
+
+        cfg = self.config
+        return Cia410Node(node_bus, self.world, accel_model, node_id=cfg.can_node_id,
+                          event_ms=int(round(1000.0 / cfg.accel_rate_hz)),
+                          lever_arm_b_m=cfg.accel_lever_arm_m, make_model=remodel)
+
     def _build_can(self, streams: list[np.random.SeedSequence]) -> None:
         import can
 
@@ -488,7 +519,9 @@ class Simulator:
         accel_model = self._models(streams[_STREAM_CAN_ACCEL], "accel", cfg.accel_rate_hz)
         # a rate written over SDO gets a model for that rate, from a new child of the same stream
         remodel = lambda hz: self._models(streams[_STREAM_CAN_ACCEL].spawn(1)[0], "accel", hz)  # noqa: E731
-        self.accelerometer = CanAccelNode(
+        cia410 = cfg.tilt_model == "cia410"
+        self.accelerometer = self._build_cia410(node_bus, accel_model, remodel) if cia410 \
+            else CanAccelNode(
             node_bus, self.world, accel_model, node_id=cfg.can_node_id, rate_hz=cfg.accel_rate_hz,
             lever_arm_b_m=cfg.accel_lever_arm_m, faults=cfg.faults.for_accel(),
             temperature_c=cfg.imu_temperature_c, rng=np.random.default_rng(streams[_STREAM_CAN_FAULTS]),

@@ -121,7 +121,7 @@ def test_input_axis_tilt_toward_the_table_axis_gives_delta_times_table_rate():
 def test_each_grade_documents_its_delta_and_the_key_sets_it_per_axis():
     deltas = {k: e.tilt_to_z_rad for k, e in GYRO_PRESETS.items()}
     stated = {"nav": (-3e-6, 2e-6), "kvh1760": (-3e-5, 2e-5), "tactical-mems": (-3e-4, 2e-4),
-              "consumer": (-3e-3, 2e-3)}
+              "consumer": (-3e-3, 2e-3), "stim300": (-6e-4, 5e-4)}
     assert deltas.keys() == stated.keys()
     for grade, pair in stated.items():
         assert deltas[grade] == pytest.approx(pair, rel=1e-12), grade

@@ -401,7 +401,8 @@ def test_nav_bias_instability_stays_well_below_the_white_noise_limit():
 
 
 def test_presets_and_custom_values():
-    assert set(GYRO_PRESETS) == set(ACCEL_PRESETS) == {"nav", "kvh1760", "tactical-mems", "consumer"}
+    assert set(GYRO_PRESETS) == set(ACCEL_PRESETS) == {"nav", "kvh1760", "tactical-mems", "consumer",
+                                                        "stim300"}
     arw = {k: v.arw_deg_rt_h for k, v in GYRO_PRESETS.items()}
     bi = {k: v.bias_instability_dph for k, v in GYRO_PRESETS.items()}
     assert arw == {
@@ -409,12 +410,14 @@ def test_presets_and_custom_values():
         "kvh1760": (0.012,) * 3,
         "tactical-mems": (0.15,) * 3,
         "consumer": (1.0,) * 3,
+        "stim300": (0.15,) * 3,  # TS1524 rev.31 Table 5-3
     }
     assert bi == {
         "nav": (0.005,) * 3,
         "kvh1760": (0.05,) * 3,
         "tactical-mems": (0.5,) * 3,
         "consumer": (10.0,) * 3,
+        "stim300": (0.3,) * 3,
     }
     custom = gyro_errors("nav", arw_deg_rt_h=(0.001, 0.002, 0.003))
     assert custom.arw_deg_rt_h == (0.001, 0.002, 0.003) and custom.bias_instability_dph == (0.005,) * 3

@@ -405,10 +405,97 @@ def build() -> dict:
     }
 
 
+MODELS_OUT = OUT.parent / "models.json"
+
+
+def _apt_vectors() -> list[dict]:
+    """Thorlabs APT: the byte examples printed in the Host-Controller Communications Protocol,
+    Issue 28 (21 Sep 2021), page by page. HW_GET_INFO's example elides its 60 internal-use bytes;
+    they are zero here, and its trailing bytes give HW version 1, mod state 0, 1 channel."""
+    info = (struct.pack("<i8sH4B", 94000009, b"ION001 \0", 44, 2, 1, 0x39, 0) + bytes(60)
+            + struct.pack("<HHH", 1, 0, 1))
+    return [
+        {"name": "HW_REQ_INFO to controller #1", "page": 51, "hex": "050000001101"},
+        {"name": "MOD_SET_CHANENABLESTATE enable channel in bay 2", "page": 46, "hex": "100201012201",
+         "channel": 1, "enable": True, "dest": 0x22},
+        {"name": "MOT_MOVE_HOME channel in bay 2", "page": 79, "hex": "430401002201", "channel": 1,
+         "dest": 0x22},
+        {"name": "MOT_MOVE_HOMED from bay 2", "page": 79, "hex": "440401000122", "channel": 1,
+         "source": 0x22},
+        {"name": "MOT_MOVE_ABSOLUTE chan 2 to 10 mm (200000 counts)", "page": 84,
+         "hex": "53040600a2010100400d0300", "channel": 1, "position": 200000, "dest": 0x22},
+        {"name": "MOT_ACK_DCSTATUSUPDATE", "page": 129, "hex": "920400002101", "dest": 0x21},
+        {"name": "HW_GET_INFO from bay 2 (ION001)", "page": 52,
+         "hex": (struct.pack("<HHBB", 0x0006, 84, 0x81, 0x22) + info).hex(),
+         "serial_number": 94000009, "model": "ION001", "hw_type": 44, "firmware": [0x39, 1, 2],
+         "hw_version": 1, "mod_state": 0, "channels": 1},
+    ]
+
+
+def _stim_datagram(ident: int, words: list[int | bytes], counter: int, latency_us: int) -> bytes:
+    """A normal-mode datagram by TS1524 Table 5-20: 24-bit words and STATUS bytes in order."""
+    body = bytes([ident])
+    for w in words:
+        body += w if isinstance(w, bytes) else (w & 0xFFFFFF).to_bytes(3, "big")
+    body += bytes([counter]) + latency_us.to_bytes(2, "big")
+    padded = body + bytes(-len(body) % 4)  # Table 5-22 dummies
+    return body + crc32_mpeg2_via_zlib(padded).to_bytes(4, "big")
+
+
+def _stim_vectors() -> dict:
+    """STIM300 (TS1524 rev.31): the sheet prints no datagram bytes, so these are made here from
+    Table 5-20/5-21 (layout), §5.5.7 (CRC, dummies of Table 5-22) and §7.5.2.2 (scaling)."""
+    s0 = b"\x00"
+    gyro = [1 << 14, -(1 << 13), 123]  # +1 °/s, −0.5 °/s, 123/2^14 °/s (rate) or /2^21 ° (increment)
+    acc = [0, 1 << 19, -(1 << 18)]  # 10 g range: 0, +1 g, −0.5 g
+    incl = [1 << 22, 0, -(1 << 20)]  # +1 g, 0, −0.25 g
+    v93 = _stim_datagram(0x93, [*gyro, s0, *acc, s0, *incl, s0], 4, 500)
+    v90 = _stim_datagram(0x90, [*gyro, b"\x41"], 255, 0x1234)  # start-up + X channel flagged
+    serial = bytes([0xB5, ord("N"), 0x25, 0x58, 0x24, 0x05, 0x00, 0x20, 0x02]) + bytes(7)
+    serial += crc32_mpeg2_via_zlib(serial).to_bytes(4, "big")
+    return {
+        "check": {"ascii": "123456789", "crc": "0376E6E7"},
+        "datagrams": [
+            {"id": 0x93, "hex": v93.hex(), "gyro_raw": gyro, "acc_raw": acc, "incl_raw": incl,
+             "status": [0, 0, 0], "counter": 4, "latency_us": 500, "length": 38},
+            {"id": 0x90, "hex": v90.hex(), "gyro_raw": gyro, "status": [0x41], "counter": 255,
+             "latency_us": 0x1234, "length": 18},
+        ],
+        "serial_datagram": {"hex": serial.hex(), "serial": "N25582405002002"},
+        "lengths": {"0x90": 18, "0x91": 28, "0x92": 28, "0x93": 38, "0x94": 25, "0xA5": 42, "0xA6": 42,
+                    "0xA7": 59, "0xF0": 22, "0xF7": 63},
+        "dummies": {"0x90": 2, "0x91": 0, "0x93": 2, "0x94": 3, "0xA5": 2, "0xA7": 1, "0xF4": 3, "0xF7": 1},
+    }
+
+
+def _cia410_vectors() -> dict:
+    """CiA 410 (DS 410 v1.2): TPDO1 of the default mapping (0x6010, 0x6020, INTEGER16 LE) and the
+    CiA 301 expedited SDO upload of 0x6000 (resolution 1 = 0.001°)."""
+    return {
+        "tpdo1": [
+            {"long": 1000, "lateral": -2000, "hex": struct.pack("<hh", 1000, -2000).hex()},
+            {"long": -32768, "lateral": 32767, "hex": struct.pack("<hh", -32768, 32767).hex()},
+        ],
+        "sdo_upload_resolution": {"request": "4000600000000000", "response": "4b00600001000000"},
+        "inversion": {"physical": 1000, "operating": 1, "shown": -1000},
+    }
+
+
+def build_models() -> dict:
+    return {
+        "source": "second models (issue 24): Thorlabs APT Issue 28, STIM300 TS1524 rev.31, CiA DS 410 v1.2",
+        "apt": _apt_vectors(),
+        "stim": _stim_vectors(),
+        "cia410": _cia410_vectors(),
+    }
+
+
 def main() -> None:
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(build(), indent=1) + "\n")
     print(f"wrote {OUT}")
+    MODELS_OUT.write_text(json.dumps(build_models(), indent=1) + "\n")
+    print(f"wrote {MODELS_OUT}")
 
 
 if __name__ == "__main__":

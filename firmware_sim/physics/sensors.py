@@ -171,6 +171,21 @@ GYRO_PRESETS: dict[str, GyroErrors] = {
         sf_asymmetry_ppm=(200.0, -150.0, 250.0),
         g_sensitivity_dph_g=_g_matrix(3.0, 1.0),
     ),
+    # Safran Sensonor STIM300, TS1524 rev.31 Table 5-3: ARW 0.15 °/√h, bias instability 0.3 °/h
+    # (Allan minimum; 0.5 °/h at 600 s), bias run-run 4 °/h (the turn-on biases below stay inside
+    # it), scale factor ±500 ppm, misalignment 1 mrad, linear-acceleration bias 1 °/h/g with
+    # g-compensation. Asymmetry and RRW are our choices of the class's order (not in the sheet).
+    "stim300": GyroErrors(
+        bias_dph=(3.0, -2.5, 2.0),
+        arw_deg_rt_h=0.15,
+        bias_instability_dph=0.3,
+        bi_correlation_s=100.0,
+        rrw_dph_rt_h=0.3,
+        scale_factor_ppm=(300.0, -250.0, 200.0),
+        misalignment_urad=(800.0, -600.0, 700.0, 500.0, -900.0, 600.0),
+        sf_asymmetry_ppm=(100.0, -80.0, 120.0),
+        g_sensitivity_dph_g=_g_matrix(1.0, 0.5),
+    ),
     "consumer": GyroErrors(
         bias_dph=(200.0, -150.0, 100.0),
         arw_deg_rt_h=1.0,
@@ -206,6 +221,17 @@ ACCEL_PRESETS: dict[str, AccelErrors] = {
         bi_correlation_s=100.0,
         scale_factor_ppm=(1000.0, -800.0, 900.0),
         misalignment_urad=(500.0, -300.0, 400.0, 200.0, -600.0, 300.0),
+    ),
+    # STIM300 10 g accelerometers, TS1524 rev.31 Table 5-5: VRW 0.024 m/s/√h = 0.024/60 m/s²/√Hz
+    # = 40.8 µg/√Hz, bias instability 0.005 mg (Allan minimum), bias one-year stability 1.9 mg
+    # (turn-on biases below inside it), scale factor ±200 ppm, misalignment 1 mrad.
+    "stim300": AccelErrors(
+        bias_ug=(800.0, -600.0, 500.0),
+        noise_ug_rt_hz=0.024 / 60.0 / G0_M_S2 * 1e6,
+        bias_instability_ug=5.0,
+        bi_correlation_s=100.0,
+        scale_factor_ppm=(150.0, -120.0, 100.0),
+        misalignment_urad=(800.0, -600.0, 700.0, 500.0, -900.0, 600.0),
     ),
     "consumer": AccelErrors(
         bias_ug=(20000.0, -15000.0, 25000.0),
