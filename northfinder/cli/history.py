@@ -43,7 +43,10 @@ def run(args: argparse.Namespace) -> int:
     db = args.db or history.default_db()
     try:
         if args.action == "sync":
-            sent, left = history.sync(db)
+            try:
+                sent, left = history.sync(db)
+            except history.Unreachable as exc:
+                raise InputError(f"{exc}; the rows stay in the outbox, sync again when it answers") from None
             print(f"sent {sent} rows to {history.label(db)}; {left} still waiting")
             return 0
         if args.rebuild:
