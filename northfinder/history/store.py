@@ -167,6 +167,15 @@ class Database:
         row = self.conn.execute("SELECT version FROM northfinder_schema").fetchone()
         return int(row[0]) if row else 0
 
+    def _peek_version(self) -> int:
+        """The schema version read without creating or locking anything."""
+        if self.dialect == "sqlite":
+            return int(self.conn.execute("PRAGMA user_version").fetchone()[0])
+        if self.conn.execute("SELECT to_regclass('northfinder_schema')").fetchone()[0] is None:
+            return 0
+        row = self.conn.execute("SELECT version FROM northfinder_schema").fetchone()
+        return int(row[0]) if row else 0
+
     def _set_version(self, version: int) -> None:
         if self.dialect == "sqlite":
             self.conn.execute(f"PRAGMA user_version = {version}")
@@ -178,6 +187,8 @@ class Database:
         """Bring the schema to `target` in one transaction; another process may be migrating too,
         so the version is read under the write lock (SQLite) or an advisory lock (PostgreSQL).
         Returns the version found before."""
+        if target == SCHEMA_VERSION and self._peek_version() == SCHEMA_VERSION:
+            return SCHEMA_VERSION  # the common case, without taking the write lock
         with self.transaction():
             if self.dialect == "postgresql":
                 self.conn.execute("SELECT pg_advisory_xact_lock(%s)", (_PG_LOCK_KEY,))
