@@ -18,6 +18,14 @@ import pytest  # noqa: E402
 GOLDEN_PATH = Path(__file__).parent / "golden" / "vectors.json"
 
 
+@pytest.fixture(autouse=True)
+def _own_results_history(tmp_path_factory, monkeypatch):
+    """Each test its own per-user data directory (platformdirs reads XDG_DATA_HOME), so the runs a
+    test makes record into a history of their own, never the user's; subprocesses inherit it."""
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path_factory.mktemp("xdg-data")))
+    monkeypatch.delenv("NORTHFINDER_HISTORY_DB", raising=False)
+
+
 @pytest.fixture(scope="session")
 def golden() -> dict:
     """tests/golden/vectors.json, written by tools/make_golden_vectors.py."""

@@ -97,7 +97,7 @@ def test_simulated_campaign_two_headings_table_figure_and_history(tmp_path):
     for label in ("mean (deviation from reference)", "standard deviation", "RMS", "mean reported σ"):
         assert label in proc.stdout
     assert f"{c['statistics']['exact']['std_arcmin']:.3f}′" in proc.stdout
-    rows = _history_rows(tmp_path / "runs" / history.DB_NAME)  # next to the runs
+    rows = _history_rows(history.default_db())  # the per-user history (this test's own)
     assert sorted(r["kind"] for r in rows) == ["campaign"] + ["find"] * 4
     assert {r["unit"] for r in rows} == {"SN-T1"}
     finds = [r for r in rows if r["kind"] == "find"]
@@ -150,7 +150,7 @@ def test_ctrl_c_mid_find_then_resume_repeats_and_loses_nothing(tmp_path):
     for r in c["runs"]:
         starts = [e for e in read_events(out / r["run_dir"]) if e["event"] == "start"]
         assert len(starts) == 1  # every listed find measured in exactly one session
-    live = _history_rows(tmp_path / "runs" / history.DB_NAME)
+    live = _history_rows(history.default_db())
     finds = [r for r in live if r["kind"] == "find"]
     assert sorted(Path(r["run_dir"]).name for r in finds) == sorted(r["run_dir"] for r in c["runs"])
     assert {r["unit"] for r in live} == {"SN-T1"}  # the resumed session's command line has no --unit

@@ -37,6 +37,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        if getattr(args, "db", None):
+            from northfinder.cli._common import apply_db_flag
+
+            apply_db_flag(args)  # --db: the history every run of this command records into
         return int(args.func(args) or 0)
     except NorthfinderError as exc:
         print(f"northfinder: error: {exc}", file=sys.stderr)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+from pathlib import Path
 from typing import Any
 
 from northfinder.align.limits import latitude_problem
@@ -19,6 +21,42 @@ def add_flag(parser: argparse.ArgumentParser, flag: str, **kwargs: Any) -> None:
     """Add a flag unless another align mode already did (`--heading`, `--latitude` are shared)."""
     if flag not in parser._option_string_actions:
         parser.add_argument(flag, **kwargs)
+
+
+def add_db_flag(parser: argparse.ArgumentParser) -> None:
+    """`--db`: the results history a command records into or reads (every command the same words)."""
+    add_flag(
+        parser,
+        "--db",
+        metavar="PATH|URL",
+        help="results history: a SQLite file or postgresql://user@host/db "
+        "(default $NORTHFINDER_HISTORY_DB, else the per-user history)",
+    )
+
+
+def apply_db_flag(args: argparse.Namespace) -> None:
+    """Make `--db` the history every run of this command records into (the runs read
+    $NORTHFINDER_HISTORY_DB; a campaign's finds inherit it)."""
+    from northfinder.history import ENV_DB, is_url
+
+    db = getattr(args, "db", None)
+    if db:
+        os.environ[ENV_DB] = db if is_url(db) else str(Path(db).resolve())
+
+
+def history_place(run_dir: str) -> str:
+    """One line: whether the history (--db, else the default) holds this run's row."""
+    from northfinder import history
+
+    db = history.default_db()
+    key = history.run_id(Path(run_dir).resolve())
+    try:
+        with history.connect(db) as conn:
+            found = conn.rows("SELECT run_id FROM runs WHERE run_id = ?", (key,))
+    except history.HistoryError as exc:
+        raise InputError(str(exc)) from None
+    state = "holds this run" if found else f"does not hold this run (northfinder history --rebuild {run_dir})"
+    return f"results history {history.label(db)} {state}"
 
 
 def check_latitude(args: argparse.Namespace) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
+from northfinder.cli._common import add_db_flag
 from northfinder.errors import InputError
 
 DESCRIPTION = """\
@@ -53,6 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="RUN_DIR", help="run directory for raw logs and the report")
     p.add_argument("--config", metavar="BENCH_TOML", help="bench configuration for real hardware")
     p.add_argument("--unit", metavar="LABEL", help="unit under test, recorded in the results history")
+    add_db_flag(p)  # the results history it records into
     p.add_argument("--simulate", action="store_true", help="start firmware-sim and align on it")
     p.add_argument("--grade", default=None,
                    help="simulated sensor grade (nav, kvh1760, tactical-mems, consumer)")

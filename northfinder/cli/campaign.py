@@ -11,11 +11,11 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
-import os
 import sys
 import time
 from pathlib import Path
 
+from northfinder.cli._common import add_db_flag
 from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.errors import InputError
 from northfinder.runs import base as run_base
@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", default="exact", help="method whose σ is checked (the find's --method)")
     p.add_argument("--unit", default="", metavar="LABEL", help="unit under test (recorded in the history)")
     p.add_argument("--out", metavar="DIR", help="campaign directory (default runs/campaign-<UTC time>)")
-    p.add_argument("--db", metavar="PATH", help="history database (default history.sqlite next to the runs)")
+    add_db_flag(p)  # the results history the campaign and its finds record into
     p.add_argument("--no-report", action="store_true", help="no report.png per find (campaign.png is drawn)")
     sim = p.add_argument_group("simulation (with --simulate)")
     sim.add_argument("--pitch", type=float, metavar="DEG")
@@ -132,11 +132,8 @@ def _prompt(step: int, reference_deg: float) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from northfinder import history
     from northfinder.cli._campaign_report import print_campaign, write_figure
 
-    if args.db:
-        os.environ[history.ENV_DB] = str(Path(args.db).resolve())  # the finds record there too
     if args.resume:
         cdir = Path(args.resume)
         state = cp.read_state(cdir)

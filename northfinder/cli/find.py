@@ -18,6 +18,7 @@ import threading
 import time
 
 from northfinder import config as bench
+from northfinder.cli._common import add_db_flag
 from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.runs import find as find_run
 from northfinder.simulate import SimSettings
@@ -68,6 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="RUN_DIR", help="run directory (default: runs/find-<UTC time>)")
     p.add_argument("--no-report", action="store_true", help="skip report.png")
     p.add_argument("--unit", metavar="LABEL", help="unit under test, recorded in the results history")
+    add_db_flag(p)  # the results history it records into
     sim = p.add_argument_group("simulation (with --simulate; passed on to firmware-sim)")
     d = SimSettings()
     sim.add_argument("--heading", type=float, default=d.heading_deg, metavar="DEG", help="true heading")

@@ -1,14 +1,18 @@
-"""`northfinder history`: list, filter and export the results history; --rebuild re-indexes run
-directories (the run directory is the source of truth, the database only an index of it)."""
+"""`northfinder history`: list, filter and export the results history (the per-user database, or
+--db / $NORTHFINDER_HISTORY_DB: a SQLite path or a lab's postgresql:// URL); --rebuild re-indexes
+run directories into it (the run directory is the source of truth, the database only an index of
+it); `history sync` sends the rows a bench kept while the lab server was unreachable."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
+from northfinder.cli._common import add_db_flag
 from northfinder.errors import InputError
 
 
@@ -17,8 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "history", help="list the results history (finds, aligns, campaigns)", description=__doc__
     )
     p.add_argument(
-        "--db", metavar="PATH", help="database (default $NORTHFINDER_HISTORY_DB or runs/history.sqlite)"
+        "action", nargs="?", choices=("list", "sync"), default="list",
+        help="list (default) or sync: send the rows kept while the lab server was unreachable",
     )
+    add_db_flag(p)
     p.add_argument("--unit", metavar="LABEL", help="only this unit")
     p.add_argument(
         "--kind", choices=("find", "align-swaying", "align-gnss", "campaign"), help="only this kind"
@@ -31,35 +37,30 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _db_path(args: argparse.Namespace) -> Path:
-    from northfinder import history
-
-    if args.db:
-        return Path(args.db)
-    if args.rebuild and not os.environ.get(history.ENV_DB):
-        return Path(args.rebuild) / history.DB_NAME
-    return history.default_db()
-
-
 def run(args: argparse.Namespace) -> int:
     from northfinder import history
 
-    db = _db_path(args)
+    db = args.db or history.default_db()
     try:
+        if args.action == "sync":
+            try:
+                sent, left = history.sync(db)
+            except history.Unreachable as exc:
+                raise InputError(f"{exc}; the rows stay in the outbox, sync again when it answers") from None
+            print(f"sent {sent} rows to {history.label(db)}; {left} still waiting")
+            return 0
         if args.rebuild:
             if not Path(args.rebuild).is_dir():
                 raise InputError(f"--rebuild {args.rebuild}: no such directory")
             written, skipped = history.rebuild(args.rebuild, db)
             print(
-                f"indexed {written} run directories under {args.rebuild} into {db} "
+                f"indexed {written} run directories under {args.rebuild} into {history.label(db)} "
                 f"({skipped} without a complete result skipped)"
             )
-        elif not db.exists():
-            raise InputError(
-                f"history database {db} does not exist; give --db PATH or index runs with --rebuild"
-            )
-        conn = history.connect(db)
-        try:
+        elif args.db and not history.is_url(db) and not Path(db).exists():
+            raise InputError(f"history database {db} does not exist; check --db or index runs with --rebuild")
+        with history.connect(db) as conn:
+            total = history.count(conn)
             rows = history.list_runs(
                 conn,
                 unit=args.unit,
@@ -68,14 +69,19 @@ def run(args: argparse.Namespace) -> int:
                 until=args.until,
                 campaign=str(Path(args.campaign).resolve()) if args.campaign else None,
             )
-        finally:
-            conn.close()
+        waiting = history.pending(db)
+        hint = history.legacy_hint(db)
     except history.HistoryError as exc:
         raise InputError(str(exc)) from None
     if args.csv:
         history.write_csv(rows, args.csv)
         print(f"{len(rows)} rows written to {args.csv}")
-    _print(rows, db)
+    _print(rows, history.label(db))
+    print(f"database: {history.label(db)} ({total} rows in all, {len(rows)} listed)")
+    if waiting:
+        print(f"{waiting} rows wait in {history.outbox_path(db)}: send them with northfinder history sync")
+    if hint:
+        print(f"note: {hint}", file=sys.stderr)
     return 0
 
 
@@ -89,7 +95,7 @@ def _short(path: str) -> str:
     return path if rel.startswith("..") else rel
 
 
-def _print(rows: list[dict[str, Any]], db: Path) -> None:
+def _print(rows: list[dict[str, Any]], db: str) -> None:
     from rich.console import Console
     from rich.markup import escape
     from rich.table import Table
@@ -110,6 +116,7 @@ def _print(rows: list[dict[str, Any]], db: Path) -> None:
         "error [°]",
         "tilt [°]",
         "faults",
+        "host",
         "run directory",
     ):
         wide = col in ("run directory", "faults")
@@ -135,6 +142,7 @@ def _print(rows: list[dict[str, Any]], db: Path) -> None:
             _f(r["error_deg"], "+.4f"),
             _f(r["tilt_deg"], ".3f"),
             escape(faults),
+            escape(r["host"] or "—"),
             escape(_short(r["run_dir"])),
         )
     console.print(t)

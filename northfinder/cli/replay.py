@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from northfinder import config as bench
-from northfinder.cli import _align_summary
+from northfinder.cli import _align_summary, _common
 from northfinder.cli._summary import print_summary
 from northfinder.rundir import RESULT, RunDir, jsonable
 from northfinder.runs.find import replay
@@ -38,6 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", metavar="PATH", help="write the recomputed result JSON here")
     p.add_argument("--report", metavar="PNG", help="draw the report of the recomputed result here")
     p.add_argument("--quiet", action="store_true", help="print only the comparison line")
+    _common.add_db_flag(p)  # with --db: also say whether that history holds the run
     p.set_defaults(func=run)
 
 
@@ -93,6 +94,8 @@ def _replay_align(args: argparse.Namespace, kind: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.db:
+        print(_common.history_place(args.run_dir))
     kind = _run_kind(args.run_dir)
     if kind in ALIGN_REPLAYS:
         return _replay_align(args, kind)
