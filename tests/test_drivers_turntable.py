@@ -33,7 +33,7 @@ def test_golden_exchange_on_a_freshly_reset_stage(golden):
         ("1OR", None), ("1TE", "1TE@"), ("1TS", "1TS00001E"), ("1TS", "1TS000032"),
         ("1PA90", None), ("1TE", "1TE@"), ("1TS", "1TS000028"), ("1TS", "1TS000033"),
         ("1TP", "1TP90.00010"),
-        ("1PA400", None), ("1TE", "1TEN"), ("1TS", "1TS000033"),
+        ("1PA400", None), ("1TE", "1TEG"), ("1TS", "1TS000033"),
     ]
     assert {p for p in pairs if p[0] != "1TS" and p[0] != "1TP"} <= g | {("1TE", "1TE@")}
     stage, proto = _stage(pairs)
@@ -51,7 +51,7 @@ def test_golden_exchange_on_a_freshly_reset_stage(golden):
         assert stage.position_deg() == 90.0001
         with pytest.raises(StageError) as exc:
             stage.move_absolute_deg(400)
-        assert exc.value.letter == "N" and "soft limit" in str(exc.value)
+        assert exc.value.letter == "G" and "out of limits" in str(exc.value)
         assert "READY from MOVING" in str(exc.value)
     proto.assert_done()
     assert proto.closed

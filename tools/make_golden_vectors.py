@@ -279,7 +279,7 @@ def build() -> dict:
             {"send": "1XX", "reply": None},
             {"send": "1TE", "reply": "1TEA"},
             {"send": "1PA400", "reply": None},
-            {"send": "1TE", "reply": "1TEN"},
+            {"send": "1TE", "reply": "1TEG"},
         ],
     }
 
