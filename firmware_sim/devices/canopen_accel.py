@@ -871,10 +871,11 @@ class CanAccelNode(Device):
         """Event-timer ticks and inhibit-delayed TPDOs due by `t_s` (after the samples up to it)."""
         out: list[tuple[float, int, Any]] = []
         for pdo, tx in enumerate(self._tx):
-            if tx.next_timer_s <= t_s and (self.state != STATE_OPERATIONAL or not pdo_valid(self.od, pdo)):
+            idle = self.state != STATE_OPERATIONAL or not pdo_valid(self.od, pdo)
+            if tx.next_timer_s <= t_s + 1e-9 and idle:
                 tx.next_timer_s += math.ceil((t_s - tx.next_timer_s) / tx.timer_s + 1e-12) * tx.timer_s
                 continue
-            while tx.next_timer_s <= t_s:
+            while tx.next_timer_s <= t_s + 1e-9:
                 if tx.latest is not None:
                     self._tx_event(pdo, tx.next_timer_s, tx.latest, out)
                 tx.next_timer_s += tx.timer_s
@@ -910,7 +911,7 @@ class CanAccelNode(Device):
         for i, t in enumerate(t_end.tolist()):
             frame = (payloads[i], bool(keep[i]))
             if tx.timer_s > 0:
-                while tx.next_timer_s < t:
+                while tx.next_timer_s < t - 1e-9:
                     if tx.latest is not None:
                         self._tx_event(pdo, tx.next_timer_s, tx.latest, out)
                     tx.next_timer_s += tx.timer_s
