@@ -211,8 +211,6 @@ def test_smc100_state_machine_and_te_letters(stage):
     stage.send("1PA290")
     assert stage.ask("1TE") == "1TE@"
     assert stage.ask("1PA?") == "1PA290"
-    stage.send("1OR")
-    assert stage.ask("1TE") == "1TEM"
     stage.send("1ST")
     errors, state = stage.wait_state((smc100.READY_FROM_MOVING,))
     stopped = stage.position_deg()
