@@ -161,3 +161,20 @@ def test_transcript_logs_both_directions_with_timestamps(tmp_path):
     assert len(lines) == 2
     assert lines[0].endswith(" > 1TS\\r\\n") and lines[1].endswith(" < 1TS\\r\\n")
     assert lines[0][:4].isdigit() and "T" in lines[0].split()[0]
+
+
+def test_stage_identity_and_limits_the_manual_way():
+    """ID? (the manual's Get stage identifier) and SL?/SR?, each a query with its one-line reply."""
+    stage, proto = _stage([("1ID?", "1IDURS100BCC"), ("1SL?", "1SL-170"), ("1SR?", "1SR170")])
+    assert stage.stage_id() == "URS100BCC"
+    assert stage.soft_limits_deg() == (-170.0, 170.0)
+    proto.assert_done()
+
+
+def test_stage_identity_from_firmware_sim():
+    from firmware_sim.config import SimConfig
+    from firmware_sim.simulator import Simulator
+
+    cfg = SimConfig(seed=1, time_scale=10.0, accel_enabled=False)
+    with Simulator(cfg) as ep, Turntable(ep["turntable"]) as st:
+        assert st.stage_id() == "URS100BCC" and st.soft_limits_deg() == (-360.0, 360.0)
