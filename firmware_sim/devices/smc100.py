@@ -1,7 +1,7 @@
 """Newport SMC100CC single-axis controller on a pty, as its user manual describes it.
 
 Reference: Newport "SMC100CC & SMC100PP Single-Axis DC or Stepper Motion Controller User's Manual",
-§2 "Remote Mode": the command syntax (`xxAAnn`, address 1…31, a bare `ST`/`SE` for all controllers),
+its "Remote Mode" chapter: the command syntax (`xxAAnn`, address 1…31, a bare `ST`/`SE` for all controllers),
 the command list with the controller states each command is allowed in, the command
 descriptions, the TE error-code table (`@` … `X`), the TS positioner-error bits and controller
 states. docs/PROTOCOLS.md §1 carries these tables (marked as taken from the manual), and
