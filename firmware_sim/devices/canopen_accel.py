@@ -871,9 +871,10 @@ class CanAccelNode(Device):
         """Event-timer ticks and inhibit-delayed TPDOs due by `t_s` (after the samples up to it)."""
         out: list[tuple[float, int, Any]] = []
         for pdo, tx in enumerate(self._tx):
-            idle = self.state != STATE_OPERATIONAL or not pdo_valid(self.od, pdo)
-            if tx.next_timer_s <= t_s + 1e-9 and idle:
-                tx.next_timer_s += math.ceil((t_s - tx.next_timer_s) / tx.timer_s + 1e-12) * tx.timer_s
+            if self.state != STATE_OPERATIONAL or not pdo_valid(self.od, pdo):  # nothing goes out
+                if tx.next_timer_s <= t_s + 1e-9:
+                    tx.next_timer_s += math.ceil((t_s - tx.next_timer_s) / tx.timer_s + 1e-12) * tx.timer_s
+                tx.pending = None
                 continue
             while tx.next_timer_s <= t_s + 1e-9:
                 if tx.latest is not None:
