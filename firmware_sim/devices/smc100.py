@@ -239,7 +239,7 @@ PARAMS: dict[str, Param] = {
     "OH": Param("Set/Get HOME search velocity", 20.0, 1e-6, 1e12),
     "OT": Param("Set/Get HOME search time-out", 100.0, 1.0, 1e3),
     "QI": Param("Set/Get motor's current limits", 1.5, 0.05, 3.0),
-    "SA": Param("Set/Get controller's RS-485 address", 1, 2, 31, kind="int"),
+    "SA": Param("Set/Get controller's RS-485 address", 1, 1, 31, kind="int"),
     "SC": Param("Set/Get control loop state", 1, 0, 1, frozenset({NR, CF, DI, RD}), kind="int"),
     "SU": Param("Set/Get encoder increment value", 1e-4, 1e-6, 1e12),
     "VA": Param("Set/Get velocity", 20.0, 1e-6, 1e12, WORKING),
