@@ -127,7 +127,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--roll", type=float, metavar="DEG", help="platform roll γ, deg")
     p.add_argument("--latitude", type=float, metavar="DEG", help="site latitude, deg (north positive)")
     p.add_argument("--grade", metavar="NAME", help="sensor preset: nav, kvh1760, tactical-mems, consumer")
-    p.add_argument("--seed", type=int, metavar="N", help="random seed (same seed, same bytes)")
+    p.add_argument("--seed", type=int, metavar="N",
+                   help="random seed: every device's noise is drawn by its own sample index, so the same "
+                   "seed gives the same bytes when the host's commands land at the same device times "
+                   "(always, for a bench the host does not move); docs/simulator.md")
     p.add_argument("--time-scale", type=float, metavar="K", help="device time runs K× the wall clock")
     p.add_argument("--scenario", metavar="NAME",
                    help="bench (turntable + IMU + CAN accelerometer, default) | ship (IMU on a swaying "

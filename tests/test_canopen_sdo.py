@@ -123,7 +123,14 @@ def test_expedited_and_segmented_upload(raw_node):
     (ca.sdo_download_request(0x2100, 0, b"\x32\0\0\0"), ca.ABORT_LENGTH),  # u16 written with 4 bytes
     (ca.sdo_download_request(0x2100, 0, struct.pack("<H", 1001)), ca.ABORT_RANGE),
     (ca.sdo_download_request(0x2100, 0, struct.pack("<H", 0)), ca.ABORT_RANGE),
-    (ca.sdo_download_request(0x1A00, 1, struct.pack("<I", 0x20020020)), ca.ABORT_RANGE),  # 8-bit as 32
+    # CiA 301 §7.5.2.38: no mapping change while the PDO is valid
+    (ca.sdo_download_request(0x1A00, 1, struct.pack("<I", 0x20020008)), ca.ABORT_UNSUPPORTED),
+    (ca.sdo_download_request(0x1A00, 0, b"\x01"), ca.ABORT_UNSUPPORTED),
+    # §7.5.2.37: the CAN-ID of a valid PDO does not change; 241…251 are reserved types
+    (ca.sdo_download_request(0x1800, 1, struct.pack("<I", 0x191)), ca.ABORT_RANGE),
+    (ca.sdo_download_request(0x1800, 2, bytes((241,))), ca.ABORT_RANGE),
+    (ca.sdo_download_request(0x1800, 3, struct.pack("<H", 10)), ca.ABORT_RANGE),  # inhibit while valid
+    (ca.sdo_upload_request(0x1800, 4), ca.ABORT_NO_SUBINDEX),  # sub 4 reserved
     (bytes((0xE0,)) + bytes(7), ca.ABORT_COMMAND),
 ])
 def test_aborts(raw_node, payload, code):
@@ -144,20 +151,36 @@ def test_segmented_download(raw_node):
     assert _abort(r) == (0x2100, 0, ca.ABORT_TOGGLE) and node.rate_hz == 40.0
 
 
-def test_mapping_and_rate_writes_follow_the_state(raw_node):
+def test_mapping_follows_the_cia301_procedure_and_the_rate_the_state(raw_node):
     node, client, ask = raw_node
-    # pre-operational: a third 32-bit object in TPDO1 would make 96 bits
-    # pre-operational: an entry past the count is accepted; counting it in (96 bits) is not
-    assert ask(ca.sdo_download_request(0x1A00, 3, struct.pack("<I", 0x20000320))).data[0] == 0x60
-    assert _abort(ask(ca.sdo_download_request(0x1A00, 0, b"\x03")))[2] == ca.ABORT_LENGTH
-    assert node.od[(0x1A00, 0)].value == 2
+
+    def ok(index, sub, data):
+        r = ask(ca.sdo_download_request(index, sub, data))
+        assert bytes(r.data) == struct.pack("<BHB4x", 0x60, index, sub), (hex(index), sub, bytes(r.data))
+
+    # §7.5.2.38: invalidate the PDO, count 0, then the entries, then the count, then validate
+    ok(0x1800, 1, struct.pack("<I", ca.PDO_NOT_VALID | 0x190))
+    ok(0x1A00, 0, b"\0")
+    assert _abort(ask(ca.sdo_download_request(0x1A00, 1, struct.pack("<I", 0x20020020))))[2] == \
+        ca.ABORT_NOT_MAPPABLE  # an 8-bit object as 32 bits
+    assert _abort(ask(ca.sdo_download_request(0x1A00, 1, struct.pack("<I", 0x22000020))))[2] == \
+        ca.ABORT_NO_OBJECT
+    ok(0x1A00, 3, struct.pack("<I", 0x20000320))
+    assert _abort(ask(ca.sdo_download_request(0x1A00, 0, b"\x03")))[2] == ca.ABORT_PDO_LENGTH  # 96 bits
+    ok(0x1A00, 2, struct.pack("<I", 0x20010010))  # x, temperature, counter: 56 bits
+    ok(0x1A00, 3, struct.pack("<I", 0x20020008))
+    ok(0x1A00, 0, b"\x03")
+    assert _abort(ask(ca.sdo_download_request(0x1A00, 1, struct.pack("<I", 0x20000120))))[2] == \
+        ca.ABORT_UNSUPPORTED  # an entry only while the count is 0
+    ok(0x1800, 3, struct.pack("<H", 20))  # inhibit time: only while not valid
+    ok(0x1800, 1, struct.pack("<I", 0x190))
+    assert node.od[(0x1A00, 0)].value == 3 and ca.pdo_valid(node.od, 0)
     r = ask(ca.sdo_download_request(0x2100, 0, struct.pack("<H", 50)))
     assert bytes(r.data) == struct.pack("<BHB4x", 0x60, 0x2100, 0) and node.rate_hz == 50.0
     client.send(can.Message(arbitration_id=0, data=[0x01, NODE], is_extended_id=False))
-    for code_payload in (ca.sdo_download_request(0x2100, 0, struct.pack("<H", 25)),
-                         ca.sdo_download_request(0x1A01, 0, b"\x02")):
-        assert _abort(ask(code_payload))[2] == ca.ABORT_STATE
-    assert node.rate_hz == 50.0 and node.od[(0x1A01, 0)].value == 4
+    assert _abort(ask(ca.sdo_download_request(0x2100, 0, struct.pack("<H", 25))))[2] == ca.ABORT_STATE
+    assert node.rate_hz == 50.0
+    ok(0x1800, 5, struct.pack("<H", 100))  # the event timer: in every state
     r = ask(ca.sdo_download_request(0x1017, 0, struct.pack("<H", 500)))  # rw in every state
     assert r.data[0] == 0x60 and node.heartbeat_period_s == 0.5
 
@@ -417,7 +440,7 @@ def test_golden_sdo_canopen_library_side(golden):
             for step in ex.get("setup", []):
                 request = bytes.fromhex(step["request"])
                 index, sub = struct.unpack_from("<HB", request, 1)
-                node.sdo.download(index, sub, request[4:8])
+                node.sdo.download(index, sub, request[4 : 8 - (request[0] >> 2 & 3)])
             upload = bytes.fromhex(ex["steps"][0]["request"])[0] == 0x40
             if "abort" in ex:
                 with pytest.raises(SdoAbortedError) as info:

@@ -58,11 +58,11 @@ def test_turntable_against_the_emulator(bench, tmp_path):
         assert stage.position_deg() == pytest.approx(44.5, abs=0.01)
         with pytest.raises(StageError) as exc:
             stage.move_absolute_deg(400)
-        assert exc.value.letter == "N" and exc.value.state_name.startswith("READY")
+        assert exc.value.letter == "G" and exc.value.state_name.startswith("READY")
         stage.move_absolute_deg(0.0, wait=False)
         assert stage.stop().is_moving is False
     text = log.read_text()
-    assert "> 1PA90\\r\\n" in text and "< 1TEN\\r\\n" in text
+    assert "> 1PA90\\r\\n" in text and "< 1TEG\\r\\n" in text
 
 
 def test_imu_against_the_emulator(bench, tmp_path):

@@ -33,7 +33,7 @@ def test_golden_exchange_on_a_freshly_reset_stage(golden):
         ("1OR", None), ("1TE", "1TE@"), ("1TS", "1TS00001E"), ("1TS", "1TS000032"),
         ("1PA90", None), ("1TE", "1TE@"), ("1TS", "1TS000028"), ("1TS", "1TS000033"),
         ("1TP", "1TP90.00010"),
-        ("1PA400", None), ("1TE", "1TEN"), ("1TS", "1TS000033"),
+        ("1PA400", None), ("1TE", "1TEG"), ("1TS", "1TS000033"),
     ]
     assert {p for p in pairs if p[0] != "1TS" and p[0] != "1TP"} <= g | {("1TE", "1TE@")}
     stage, proto = _stage(pairs)
@@ -51,7 +51,7 @@ def test_golden_exchange_on_a_freshly_reset_stage(golden):
         assert stage.position_deg() == 90.0001
         with pytest.raises(StageError) as exc:
             stage.move_absolute_deg(400)
-        assert exc.value.letter == "N" and "soft limit" in str(exc.value)
+        assert exc.value.letter == "G" and "out of limits" in str(exc.value)
         assert "READY from MOVING" in str(exc.value)
     proto.assert_done()
     assert proto.closed
@@ -161,3 +161,20 @@ def test_transcript_logs_both_directions_with_timestamps(tmp_path):
     assert len(lines) == 2
     assert lines[0].endswith(" > 1TS\\r\\n") and lines[1].endswith(" < 1TS\\r\\n")
     assert lines[0][:4].isdigit() and "T" in lines[0].split()[0]
+
+
+def test_stage_identity_and_limits_the_manual_way():
+    """ID? (the manual's Get stage identifier) and SL?/SR?, each a query with its one-line reply."""
+    stage, proto = _stage([("1ID?", "1IDURS100BCC"), ("1SL?", "1SL-170"), ("1SR?", "1SR170")])
+    assert stage.stage_id() == "URS100BCC"
+    assert stage.soft_limits_deg() == (-170.0, 170.0)
+    proto.assert_done()
+
+
+def test_stage_identity_from_firmware_sim():
+    from firmware_sim.config import SimConfig
+    from firmware_sim.simulator import Simulator
+
+    cfg = SimConfig(seed=1, time_scale=10.0, accel_enabled=False)
+    with Simulator(cfg) as ep, Turntable(ep["turntable"]) as st:
+        assert st.stage_id() == "URS100BCC" and st.soft_limits_deg() == (-360.0, 360.0)

@@ -199,17 +199,18 @@ def test_smc100_state_machine_and_te_letters(stage):
     assert stage.ask("1TE") == "1TE@"
     assert stage.ask("1SL?") == "1SL-10"
     stage.send("1PA-20")
-    assert stage.ask("1TE") == "1TEN"
+    assert stage.ask("1TE") == "1TEG"  # the manual: displacement out of limits
     stage.send("1PR-10.5")
-    assert stage.ask("1TE") == "1TEN"
+    assert stage.ask("1TE") == "1TEG"
     stage.send("1SL5")
     assert stage.ask("1TE") == "1TEC"
-    # a long move: MOVING, M for a second move, ST ends it early in READY from MOVING
+    # a long move: MOVING, a new PA re-targets it (the manual allows PA in MOVING), ST ends it
     stage.send("1PA300")
     assert stage.ask("1TE") == "1TE@"
     assert stage.status() == (0, smc100.MOVING)
-    stage.send("1PA10")
-    assert stage.ask("1TE") == "1TEM"
+    stage.send("1PA290")
+    assert stage.ask("1TE") == "1TE@"
+    assert stage.ask("1PA?") == "1PA290"
     stage.send("1ST")
     errors, state = stage.wait_state((smc100.READY_FROM_MOVING,))
     stopped = stage.position_deg()

@@ -187,18 +187,23 @@ def sdo_exchanges() -> list[dict]:
             ],
         },
         {
-            "name": "abort: mapping of 96 bits",
+            "name": "abort: mapping of 96 bits (CiA 301 §7.5.2.38 procedure: invalidate, count 0, entry)",
             "index": 0x1A00,
             "sub": 0,
             "value": "03",
-            "abort": 0x06070010,
+            "abort": 0x06040042,
             "setup": [
+                {
+                    "request": _sdo(0x23, 0x1800, 1, struct.pack("<I", 0x80000190)),
+                    "response": _sdo(0x60, 0x1800, 1),
+                },
+                {"request": _sdo(0x2F, 0x1A00, 0, b"\0"), "response": _sdo(0x60, 0x1A00, 0)},
                 {
                     "request": _sdo(0x23, 0x1A00, 3, struct.pack("<I", 0x20000320)),
                     "response": _sdo(0x60, 0x1A00, 3),
-                }
+                },
             ],
-            "steps": [{"request": _sdo(0x2F, 0x1A00, 0, b"\x03"), "response": _abort(0x1A00, 0, 0x06070010)}],
+            "steps": [{"request": _sdo(0x2F, 0x1A00, 0, b"\x03"), "response": _abort(0x1A00, 0, 0x06040042)}],
         },
     ]
 
@@ -279,7 +284,7 @@ def build() -> dict:
             {"send": "1XX", "reply": None},
             {"send": "1TE", "reply": "1TEA"},
             {"send": "1PA400", "reply": None},
-            {"send": "1TE", "reply": "1TEN"},
+            {"send": "1TE", "reply": "1TEG"},
         ],
     }
 

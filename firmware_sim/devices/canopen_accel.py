@@ -1,4 +1,12 @@
-"""CANopen-style 3-axis accelerometer node on any python-can bus (docs/PROTOCOLS.md §3).
+"""CANopen 3-axis accelerometer node on any python-can bus (docs/PROTOCOLS.md §3, CiA 301).
+
+Reference: CiA 301 v4.2 "CANopen application layer and communication profile": §7.2.2 PDO
+(transmission types, inhibit time, event timer, SYNC-driven transmission), §7.2.5 SYNC,
+§7.5.2.5 COB-ID SYNC (1005h), §7.5.2.37 TPDO communication parameter (1800h+n: COB-ID with its
+valid bit 31 and RTR bit 30, transmission type, inhibit time, sub-index 4 reserved, event timer,
+SYNC start value), §7.5.2.38 TPDO mapping parameter (1A00h+n) with the mapping procedure
+(invalidate the PDO, count 0, entries, count, validate), §7.2.4.3.17 SDO abort codes.
+docs/conformance/canopen.md (tools/conformance_canopen.py) lists every object against the standard.
 
 The node boots on its first `advance`, sends the boot-up heartbeat (state 0x00), then a
 heartbeat every 1000 ms of device time with its NMT state. While operational it sends one
@@ -145,13 +153,27 @@ SDO_TX_BASE = 0x580  # server -> client
 
 ABORT_TOGGLE = 0x05030000
 ABORT_COMMAND = 0x05040001
+ABORT_UNSUPPORTED = 0x06010000
 ABORT_WRITE_ONLY = 0x06010001
 ABORT_READ_ONLY = 0x06010002
 ABORT_NO_OBJECT = 0x06020000
+ABORT_NOT_MAPPABLE = 0x06040041
+ABORT_PDO_LENGTH = 0x06040042
 ABORT_LENGTH = 0x06070010
 ABORT_NO_SUBINDEX = 0x06090011
 ABORT_RANGE = 0x06090030
 ABORT_STATE = 0x08000022
+
+SYNC_ID = 0x080  # CiA 301 default COB-ID SYNC (1005h)
+NMT_RESET_COMMUNICATION = 0x82
+PDO_NOT_VALID = 1 << 31  # 1800h+n sub 1 bit 31: 1 = PDO does not exist / is not valid
+PDO_NO_RTR = 1 << 30  # bit 30: 1 = no RTR allowed on this PDO
+PDO_EXTENDED = 1 << 29  # bit 29: 1 = 29-bit CAN-ID (this node: 11-bit only)
+TRANSMISSION_SYNC_ACYCLIC = 0
+TRANSMISSION_SYNC_RTR = 252
+TRANSMISSION_RTR = 253
+TRANSMISSION_EVENT_MANUFACTURER = 254
+TRANSMISSION_EVENT_PROFILE = 255
 
 DEVICE_NAME = "NF-ACC3 accelerometer"
 SOFTWARE_VERSION = "firmware-sim 1.0"
@@ -212,13 +234,18 @@ def build_object_dictionary(node_id: int, mapping: str, rate_hz: float,
         (0x2003, 0): OdEntry("u8", "ro", 0, mappable=True),
         (0x2100, 0): OdEntry("u16", "rw-preop", int(round(rate_hz)), 1, 1000),
     }
+    od[(0x1005, 0)] = OdEntry("u32", "rw", SYNC_ID)
     for k, (base, entries) in enumerate(((TPDO1_BASE, t1), (TPDO2_BASE, t2))):
-        od[(0x1800 + k, 0)] = OdEntry("u8", "ro", 2)
-        od[(0x1800 + k, 1)] = OdEntry("u32", "ro", base + node_id)
-        od[(0x1800 + k, 2)] = OdEntry("u8", "ro", 0xFE)
-        od[(0x1A00 + k, 0)] = OdEntry("u8", "rw-preop", len(entries), 0, 8)
+        # CiA 301 §7.5.2.37: sub 4 is reserved and not implemented (abort 0x06090011)
+        od[(0x1800 + k, 0)] = OdEntry("u8", "ro", 6)
+        od[(0x1800 + k, 1)] = OdEntry("u32", "rw", base + node_id)
+        od[(0x1800 + k, 2)] = OdEntry("u8", "rw", TRANSMISSION_EVENT_MANUFACTURER)
+        od[(0x1800 + k, 3)] = OdEntry("u16", "rw", 0)
+        od[(0x1800 + k, 5)] = OdEntry("u16", "rw", 0)
+        od[(0x1800 + k, 6)] = OdEntry("u8", "rw", 0, 0, 240)
+        od[(0x1A00 + k, 0)] = OdEntry("u8", "rw", len(entries), 0, 8)
         for s in range(1, 9):
-            od[(0x1A00 + k, s)] = OdEntry("u32", "rw-preop", entries[s - 1] if s <= len(entries) else 0)
+            od[(0x1A00 + k, s)] = OdEntry("u32", "rw", entries[s - 1] if s <= len(entries) else 0)
     axes_index = 0x2004 if mapping == "swapped" else 0x2000
     od[(axes_index, 0)] = OdEntry("u8", "ro", 3)
     for s in (1, 2, 3):
@@ -374,18 +401,89 @@ def mapping_layout(od: dict[tuple[int, int], OdEntry], pdo: int) -> list[tuple[i
     return out
 
 
+def pdo_valid(od: dict[tuple[int, int], OdEntry], pdo: int) -> bool:
+    """CiA 301 §7.5.2.37: bit 31 of the COB-ID clear = the PDO exists (is valid)."""
+    return not int(od[(0x1800 + pdo, 1)].value) & PDO_NOT_VALID
+
+
 def check_mapping_entry(od: dict[tuple[int, int], OdEntry], entry: int) -> None:
-    """A mapping entry must name a mappable object with its exact bit length (else value range)."""
+    """A mapping entry names an existing (0x06020000), mappable object with its exact bit length
+    (0x06040041, object cannot be mapped); 0 clears the entry."""
     if entry == 0:
         return
-    target = od.get((entry >> 16, (entry >> 8) & 0xFF))
-    if target is None or not target.mappable or _SIZES[target.kind] * 8 != entry & 0xFF:
+    key = (entry >> 16, (entry >> 8) & 0xFF)
+    target = od.get(key)
+    if target is None:
+        if any(i == key[0] for i, _ in od):
+            raise _SdoAbort(ABORT_NO_SUBINDEX)
+        raise _SdoAbort(ABORT_NO_OBJECT)
+    if not target.mappable or _SIZES[target.kind] * 8 != entry & 0xFF:
+        raise _SdoAbort(ABORT_NOT_MAPPABLE)
+
+
+def check_mapping_write(od: dict[tuple[int, int], OdEntry], pdo: int, sub: int, value: int) -> None:
+    """CiA 301 §7.5.2.38, the mapping procedure: the mapping changes only while the PDO is not
+    valid (0x06010000); an entry only while the count (sub 0) is 0 (0x06010000); a new count
+    checks every entry it takes in (0x06040041) and their length against 64 bits (0x06040042)."""
+    if pdo_valid(od, pdo):
+        raise _SdoAbort(ABORT_UNSUPPORTED)
+    if sub == 0:
+        for s in range(1, value + 1):
+            entry = int(od[(0x1A00 + pdo, s)].value)
+            if entry == 0:
+                raise _SdoAbort(ABORT_NOT_MAPPABLE)
+            check_mapping_entry(od, entry)
+        if mapping_bits(od, pdo, value) > 64:
+            raise _SdoAbort(ABORT_PDO_LENGTH)
+        return
+    if int(od[(0x1A00 + pdo, 0)].value) != 0:
+        raise _SdoAbort(ABORT_UNSUPPORTED)
+    check_mapping_entry(od, value)
+
+
+def check_communication_write(od: dict[tuple[int, int], OdEntry], pdo: int, sub: int, value: int) -> None:
+    """CiA 301 §7.5.2.37: while the PDO is valid its CAN-ID (bits 0–29), inhibit time and SYNC
+    start value do not change (0x06090030); transmission types 241…251 are reserved (0x06090030);
+    this node has 11-bit CAN-IDs only (bit 29 set, or ID bits above 0x7FF: 0x06090030)."""
+    valid = pdo_valid(od, pdo)
+    if sub == 1:
+        if value & PDO_EXTENDED or value & 0x1FFFF800:
+            raise _SdoAbort(ABORT_RANGE)
+        old = int(od[(0x1800 + pdo, 1)].value)
+        if valid and not value & PDO_NOT_VALID and (value ^ old) & 0x3FFFFFFF:
+            raise _SdoAbort(ABORT_RANGE)
+    elif sub == 2:
+        if 241 <= value <= 251:
+            raise _SdoAbort(ABORT_RANGE)
+    elif sub in (3, 6) and valid:
         raise _SdoAbort(ABORT_RANGE)
 
 
 def mapping_bits(od: dict[tuple[int, int], OdEntry], pdo: int, count: int) -> int:
     """Bits of the first `count` entries of TPDO `pdo`'s mapping."""
     return sum(int(od[(0x1A00 + pdo, s)].value) & 0xFF for s in range(1, count + 1))
+
+
+@dataclass
+class TpdoTx:
+    """One TPDO's transmission state (CiA 301 §7.2.2.2): when it last went out, what is pending
+    behind the inhibit time, the latest payload for SYNC/RTR/timer-driven types, the SYNC count."""
+
+    last_sent_s: float = -math.inf
+    pending: tuple[bytes, bool] | None = None  # (payload, keep) waiting for the inhibit time
+    latest: tuple[bytes, bool] | None = None  # the newest sample's (payload, keep)
+    fresh: bool = False  # a sample came since the last transmission (type 0)
+    next_timer_s: float = math.inf
+    sync_count: int = 0
+    sync_started: bool = False
+    at_sync: tuple[bytes, bool] | None = None  # type 252: the sample taken at the last SYNC
+    timer_s: float = 0.0
+
+    def restart(self, t_s: float, timer_ms: int | None = None) -> None:
+        if timer_ms is not None:
+            self.timer_s = timer_ms / 1000.0
+        self.next_timer_s = t_s + self.timer_s if self.timer_s > 0 else math.inf
+        self.pending = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -528,6 +626,7 @@ class CanAccelNode(Device):
         self._power_on_rate_hz = self.rate_hz
         self.od = build_object_dictionary(node_id, mapping, self.rate_hz)
         self.sdo = SdoServer(self.od, self._on_sdo_write)
+        self._tx = [TpdoTx(), TpdoTx()]
 
         self.state: int | None = None  # None until powered on
         self.power_on_s: float | None = None  # device time of the first `advance`
@@ -577,16 +676,23 @@ class CanAccelNode(Device):
         if self.power_on_s is not None and self.power_on_s != t_s:
             self._set_rate(self._power_on_rate_hz, t_s)
         self.od.update(build_object_dictionary(self.node_id, self.mapping, self._power_on_rate_hz))
+        self._tx = [TpdoTx(), TpdoTx()]
         self.state = STATE_PRE_OPERATIONAL
         period = self.heartbeat_period_s
         self._next_heartbeat_s = t_s + period if period > 0 else math.inf
         self._send_heartbeat(t_s, STATE_BOOTUP)
 
     def _on_frame(self, msg: can.Message, t_s: float) -> None:
-        if msg.is_extended_id or msg.is_remote_frame:
+        if msg.is_extended_id:
+            return
+        if msg.is_remote_frame:
+            self._on_remote(msg.arbitration_id, t_s)
             return
         if msg.arbitration_id == SDO_RX_BASE + self.node_id:
             self._on_sdo(bytes(msg.data), t_s)
+            return
+        if msg.arbitration_id == int(self.od[(0x1005, 0)].value) & 0x7FF and msg.dlc <= 1:
+            self._on_sync(bytes(msg.data), t_s)
             return
         if msg.arbitration_id != NMT_ID or msg.dlc != 2:
             return
@@ -604,7 +710,74 @@ class CanAccelNode(Device):
             self.state = STATE_PRE_OPERATIONAL
         elif command == NMT_RESET_NODE:
             self._boot(t_s)
+        elif command == NMT_RESET_COMMUNICATION:
+            self._reset_communication(t_s)
         log.debug("node 0x%02X: NMT 0x%02X at %.6f s -> state 0x%02X", self.node_id, command, t_s, self.state)
+
+    def _reset_communication(self, t_s: float) -> None:
+        """NMT reset communication: the communication objects (1000h–1FFFh) back to their
+        defaults, boot-up, pre-operational; the application (rate, counter) goes on."""
+        defaults = build_object_dictionary(self.node_id, self.mapping, self.rate_hz)
+        self.od.update({key: entry for key, entry in defaults.items() if key[0] < 0x2000})
+        self._tx = [TpdoTx(), TpdoTx()]
+        self.state = STATE_PRE_OPERATIONAL
+        period = self.heartbeat_period_s
+        self._next_heartbeat_s = t_s + period if period > 0 else math.inf
+        self._send_heartbeat(t_s, STATE_BOOTUP)
+
+    # -- SYNC and RTR (CiA 301 §7.2.5, §7.2.2.2) ----------------------------------------------
+    def _on_sync(self, data: bytes, t_s: float) -> None:
+        """A SYNC: synchronous TPDOs (types 0…240) go out now with the newest sample; type 252
+        takes its sample for the next RTR. The optional counter byte meets the SYNC start value."""
+        self._emit_until(t_s)
+        if self.state != STATE_OPERATIONAL:
+            return
+        counter = data[0] if data else None
+        for pdo, tx in enumerate(self._tx):
+            if not pdo_valid(self.od, pdo) or tx.latest is None:
+                continue
+            ttype = int(self.od[(0x1800 + pdo, 2)].value)
+            if ttype == TRANSMISSION_SYNC_RTR:
+                tx.at_sync = tx.latest
+            elif ttype == TRANSMISSION_SYNC_ACYCLIC:
+                if tx.fresh:
+                    self._transmit(pdo, t_s, tx.latest)
+            elif ttype <= 240:
+                start = int(self.od[(0x1800 + pdo, 6)].value)
+                if start and counter is not None and not tx.sync_started:
+                    if counter != start:
+                        continue
+                    tx.sync_started, tx.sync_count = True, ttype - 1  # this SYNC is the first one
+                tx.sync_count += 1
+                if tx.sync_count >= ttype:
+                    tx.sync_count = 0
+                    self._transmit(pdo, t_s, tx.latest)
+
+    def _on_remote(self, cob_id: int, t_s: float) -> None:
+        """An RTR for a TPDO of type 252 (sample of the last SYNC) or 253 (the newest sample)."""
+        self._emit_until(t_s)
+        if self.state != STATE_OPERATIONAL:
+            return
+        for pdo, tx in enumerate(self._tx):
+            value = int(self.od[(0x1800 + pdo, 1)].value)
+            if value & (PDO_NOT_VALID | PDO_NO_RTR) or value & 0x7FF != cob_id:
+                continue
+            ttype = int(self.od[(0x1800 + pdo, 2)].value)
+            frames = {TRANSMISSION_SYNC_RTR: tx.at_sync, TRANSMISSION_RTR: tx.latest}
+            frame = frames.get(ttype)
+            if frame is not None:
+                self._transmit(pdo, t_s, frame)
+
+    def _transmit(self, pdo: int, t_s: float, frame: tuple[bytes, bool]) -> None:
+        """Send one TPDO now (SYNC/RTR answers), through the loss fault like every TPDO."""
+        tx = self._tx[pdo]
+        tx.last_sent_s, tx.fresh = t_s, False
+        payload, keep = frame
+        if not keep:
+            self.stats.tpdo_dropped += 1
+            return
+        self.stats.tpdo_sent += 1
+        self._send(t_s, int(self.od[(0x1800 + pdo, 1)].value) & 0x7FF, payload)
 
     # -- SDO ---------------------------------------------------------------------------------
     def _on_sdo(self, request: bytes, t_s: float) -> None:
@@ -622,26 +795,32 @@ class CanAccelNode(Device):
             self._send(t_s, SDO_TX_BASE + self.node_id, reply)
 
     def _on_sdo_write(self, index: int, sub: int, value: Any) -> None:
-        """The node's own rules for a write the dictionary allowed."""
+        """The node's own rules for a write the dictionary allowed (CiA 301 §7.5.2.37/38 for the
+        PDO parameters, §7.5.2.5 for COB-ID SYNC)."""
         if index in (0x1A00, 0x1A01):
-            pdo = index - 0x1A00
-            if sub == 0:
-                if mapping_bits(self.od, pdo, int(value)) > 64:
-                    raise _SdoAbort(ABORT_LENGTH)
-            else:
-                check_mapping_entry(self.od, int(value))
-                count = int(self.od[(index, 0)].value)
-                old = int(self.od[(index, sub)].value)
-                self.od[(index, sub)].value = int(value)
-                bits = mapping_bits(self.od, pdo, count)
-                self.od[(index, sub)].value = old
-                if bits > 64:
-                    raise _SdoAbort(ABORT_LENGTH)
+            check_mapping_write(self.od, index - 0x1A00, sub, int(value))
+        elif index in (0x1800, 0x1801):
+            check_communication_write(self.od, index - 0x1800, sub, int(value))
+            self._on_communication_write(index - 0x1800, sub, int(value))
+        elif index == 0x1005:
+            if int(value) & (PDO_EXTENDED | 1 << 30) or int(value) & 0x1FFFF800:
+                raise _SdoAbort(ABORT_RANGE)  # 11-bit SYNC consumer only: no 29-bit ID, no producing
         elif index == 0x2100:
             self._set_rate(float(value), self._t_now_s)
         elif index == 0x1017:
             period = int(value) / 1000.0
             self._next_heartbeat_s = self._t_now_s + period if period > 0 else math.inf
+
+    def _on_communication_write(self, pdo: int, sub: int, value: int) -> None:
+        """A TPDO becoming valid, or its event timer changed, starts its timer from now."""
+        self._emit_until(self._t_now_s)
+        tx = self._tx[pdo]
+        if sub == 1 and not value & PDO_NOT_VALID:
+            tx.restart(self._t_now_s)
+        elif sub in (2, 5):
+            tx.next_timer_s = math.inf  # re-armed below with the new figures
+            tx.sync_count = 0
+            tx.restart(self._t_now_s, timer_ms=value if sub == 5 else None)
 
     def _set_rate(self, rate_hz: float, t_s: float) -> None:
         """A new sample rate from `t_s`: the grid restarts where the last sample sent ended."""
@@ -670,13 +849,14 @@ class CanAccelNode(Device):
         while self._emcy_index < len(self.faults.emcy) and self.faults.emcy[self._emcy_index][0] <= t_s + eps:
             events.append((self.faults.emcy[self._emcy_index][0], 1, self.faults.emcy[self._emcy_index][1]))
             self._emcy_index += 1
-        if n <= 0 and not events:
-            return
         if n > 0:
             frames = self._sample_frames(self._next_sample, n)
             self._next_sample = k_end
             if frames is not None:
                 events.extend(frames)
+        events.extend(self._due_tpdos(t_s))
+        if not events:
+            return
         events.sort(key=lambda e: (e[0], e[1]))
         for t_event, kind, payload in events:
             if kind == 0:
@@ -686,6 +866,66 @@ class CanAccelNode(Device):
             else:
                 self.stats.tpdo_sent += 1
                 self._send(t_event, *payload)
+
+    def _due_tpdos(self, t_s: float) -> list[tuple[float, int, Any]]:
+        """Event-timer ticks and inhibit-delayed TPDOs due by `t_s` (after the samples up to it)."""
+        out: list[tuple[float, int, Any]] = []
+        for pdo, tx in enumerate(self._tx):
+            if self.state != STATE_OPERATIONAL or not pdo_valid(self.od, pdo):  # nothing goes out
+                if tx.next_timer_s <= t_s + 1e-9:
+                    tx.next_timer_s += math.ceil((t_s - tx.next_timer_s) / tx.timer_s + 1e-12) * tx.timer_s
+                tx.pending = None
+                continue
+            while tx.next_timer_s <= t_s + 1e-9:
+                if tx.latest is not None:
+                    self._tx_event(pdo, tx.next_timer_s, tx.latest, out)
+                tx.next_timer_s += tx.timer_s
+            inhibit_s = int(self.od[(0x1800 + pdo, 3)].value) * 1e-4
+            if tx.pending is not None and tx.last_sent_s + inhibit_s <= t_s:
+                self._tx_event(pdo, tx.last_sent_s + inhibit_s, tx.pending, out)
+                tx.pending = None
+        return out
+
+    def _tx_event(self, pdo: int, t_s: float, frame: tuple[bytes, bool], out: list) -> None:
+        tx = self._tx[pdo]
+        tx.last_sent_s, tx.fresh = t_s, False
+        payload, keep = frame
+        if keep:
+            out.append((t_s, 2 + pdo, (int(self.od[(0x1800 + pdo, 1)].value) & 0x7FF, payload)))
+        else:
+            self.stats.tpdo_dropped += 1
+
+    def _tpdo_events(self, pdo: int, t_end: np.ndarray, payloads: list[bytes],
+                     keep: np.ndarray) -> list[tuple[float, int, Any]]:
+        """CiA 301 §7.2.2.2 for one TPDO over a block of samples: event-driven types (254, 255)
+        send each sample (no sooner than the inhibit time after the last one: then the newest
+        sample goes out when it has passed) or, with an event timer, the newest sample at each
+        tick (the manufacturer-specific event of this node); the other types keep the newest
+        sample for the SYNC or RTR that sends it."""
+        tx = self._tx[pdo]
+        ttype = int(self.od[(0x1800 + pdo, 2)].value)
+        out: list[tuple[float, int, Any]] = []
+        if ttype < TRANSMISSION_EVENT_MANUFACTURER:
+            tx.latest, tx.fresh = (payloads[-1], bool(keep[-1])), True
+            return out
+        inhibit_s = int(self.od[(0x1800 + pdo, 3)].value) * 1e-4
+        for i, t in enumerate(t_end.tolist()):
+            frame = (payloads[i], bool(keep[i]))
+            if tx.timer_s > 0:
+                while tx.next_timer_s < t - 1e-9:
+                    if tx.latest is not None:
+                        self._tx_event(pdo, tx.next_timer_s, tx.latest, out)
+                    tx.next_timer_s += tx.timer_s
+            elif inhibit_s > 0 and tx.pending is not None and tx.last_sent_s + inhibit_s <= t:
+                self._tx_event(pdo, tx.last_sent_s + inhibit_s, tx.pending, out)
+                tx.pending = None
+            if tx.timer_s <= 0:
+                if t >= tx.last_sent_s + inhibit_s:
+                    self._tx_event(pdo, t, frame, out)
+                else:
+                    tx.pending = frame
+            tx.latest = frame
+        return out
 
     def _sample_frames(self, k0: int, n: int) -> list[tuple[float, int, Any]] | None:
         """Measure samples k0…k0+n−1; TPDO events if operational (the sensor runs regardless)."""
@@ -700,19 +940,16 @@ class CanAccelNode(Device):
             return None
         self._counter = (self._counter + n) & 0xFF
         payloads = [encode_mapped(mapping_layout(self.od, pdo), values, n) for pdo in (0, 1)]
-        ids = [int(self.od[(0x1800 + pdo, 1)].value) for pdo in (0, 1)]
         keep = np.ones((n, 2), dtype=bool)
         if self.faults.loss_rate > 0.0:
             keep = self.rng.random((n, 2)) >= self.faults.loss_rate
         self.stats.samples += n
-        self.stats.tpdo_dropped += int(2 * n - keep.sum())
         t_end = self._grid_t0_s + (k0 + 1 + np.arange(n)) * self.dt_s
         events: list[tuple[float, int, Any]] = []
-        for i in range(n):
-            t = float(t_end[i])
-            for pdo in (0, 1):
-                if keep[i, pdo] and payloads[pdo] is not None:
-                    events.append((t, 2 + pdo, (ids[pdo], payloads[pdo][i])))
+        for pdo in (0, 1):
+            if payloads[pdo] is not None and pdo_valid(self.od, pdo):
+                events.extend(self._tpdo_events(pdo, t_end, payloads[pdo], keep[:, pdo]))
+        events.sort(key=lambda e: (e[0], e[1]))
         return events
 
     def _object_values(self, dv_meas: np.ndarray, ug: np.ndarray, temp_centi: int, status: np.ndarray,

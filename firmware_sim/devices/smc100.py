@@ -1,10 +1,20 @@
-"""Newport SMC100 rotation-stage controller, the subset of docs/PROTOCOLS.md §1, on a pty.
+"""Newport SMC100CC single-axis controller on a pty, as its user manual describes it.
 
-The codec (bytes ⇄ command/reply) is written here from the protocol sheet. The controller is a
-state machine over the physics' table motion: `OR` homes to α = 0, `PA`/`PR` plan a move on
-`world.table`; the state goes READY when the *planned* move ends (the table may still ring
-a little: that is physics, and the encoder shows it). `TP` reports the encoder, i.e. the
-physics' quantized α in degrees. Every command that cannot run leaves its TE letter.
+Reference: Newport "SMC100CC & SMC100PP Single-Axis DC or Stepper Motion Controller User's Manual",
+its "Remote Mode" chapter: the command syntax (`xxAAnn`, address 1…31, a bare `ST`/`SE` for all controllers),
+the command list with the controller states each command is allowed in, the command
+descriptions, the TE error-code table (`@` … `X`), the TS positioner-error bits and controller
+states. docs/PROTOCOLS.md §1 carries these tables (marked as taken from the manual), and
+docs/conformance/smc100.md is generated from this module by tools/conformance_smc100.py.
+
+The codec (bytes ⇄ command/reply) is written here from the manual. The controller is a state
+machine over the physics' table motion: `OR` homes to α = 0, `PA`/`PR` plan a move on
+`world.table` (in MOVING a new `PA`/`PR` re-targets the move in progress: the manual lists both as
+allowed in MOVING; `PR` then adds to the current target); the state goes READY when the *planned*
+move ends (the table may still ring a little: that is physics, and the encoder shows it). `TP`
+reports the encoder, `TH` the set-point. This is a CC controller: the PP-only commands (`DV`,
+`FR`, `VB`) leave TE `X`. Every command that cannot run leaves its TE letter; set and move
+commands never reply (the manual: the host reads TE).
 """
 
 from __future__ import annotations
@@ -21,7 +31,7 @@ from firmware_sim.pty import PtyPort
 
 log = logging.getLogger("firmware_sim.smc100")
 
-# Controller states (SS in TS), docs/PROTOCOLS.md §1
+# Controller states (SS in TS), the manual's TS description; docs/PROTOCOLS.md §1
 NOT_REFERENCED_FROM_RESET = 0x0A
 NOT_REFERENCED_FROM_HOMING = 0x0B
 NOT_REFERENCED_FROM_CONFIGURATION = 0x0C
@@ -36,9 +46,50 @@ READY_FROM_MOVING = 0x33
 READY_FROM_DISABLE = 0x34
 DISABLE_FROM_READY = 0x3C
 DISABLE_FROM_MOVING = 0x3D
+DISABLE_FROM_JOGGING = 0x3E
+READY_FROM_JOGGING = 0x35
+NOT_REFERENCED_FROM_JOGGING = 0x11
+JOGGING_FROM_READY = 0x46
+JOGGING_FROM_DISABLE = 0x47
 
-# Positioner error bits (EEEE in TS)
+# Positioner error bits (EEEE in TS), the manual's TS description (bits 10–15 not used)
+POSITIONER_ERROR_BITS: dict[int, str] = {
+    0: "Negative end of run",
+    1: "Positive end of run",
+    2: "Peak current limit",
+    3: "RMS current limit",
+    4: "Short circuit detection",
+    5: "Following error",
+    6: "Homing time out",
+    7: "Wrong ESP stage",
+    8: "DC voltage too low",
+    9: "80 W output power exceeded",
+}
 ERR_FOLLOWING = 1 << 5
+
+# The TE error codes, the manual's "TE — Get command error" table (every letter it defines).
+TE_CODES: dict[str, str] = {
+    "@": "No error",
+    "A": "Unknown message code or floating point controller address",
+    "B": "Controller address not correct",
+    "C": "Parameter missing or out of range",
+    "D": "Command not allowed",
+    "E": "Home sequence already started",
+    "F": "ESP stage name unknown",
+    "G": "Displacement out of limits",
+    "H": "Command not allowed in NOT REFERENCED state",
+    "I": "Command not allowed in CONFIGURATION state",
+    "J": "Command not allowed in DISABLE state",
+    "K": "Command not allowed in READY state",
+    "L": "Command not allowed in HOMING state",
+    "M": "Command not allowed in MOVING state",
+    "N": "Current position out of software limit",
+    "S": "Communication Time Out",
+    "U": "Error during EEPROM access",
+    "V": "Error during command execution",
+    "W": "Command not allowed for PP version",
+    "X": "Command not allowed for CC version",
+}
 
 SOFT_LIMITS_DEG = (-360.0, 360.0)
 REST_THRESHOLD_DEG = 1e-6
@@ -134,6 +185,121 @@ def parse_reply(line: bytes | str) -> tuple[int, str, str]:
 
 
 # ---------------------------------------------------------------------------------------------
+# The manual's command list: state groups, parameters
+# ---------------------------------------------------------------------------------------------
+# State groups of the manual's command list columns.
+NR, CF, DI, RD = "NOT REFERENCED", "CONFIGURATION", "DISABLE", "READY"
+HO, MV, JG = "HOMING", "MOVING", "JOGGING"
+STATE_LETTER = {NR: "H", CF: "I", DI: "J", RD: "K", HO: "L", MV: "M", JG: "D"}
+"""The TE letter for 'not allowed in this state' (JOGGING has none of its own: D)."""
+
+STATE_NAMES: dict[int, str] = {
+    0x0A: "NOT REFERENCED from reset", 0x0B: "NOT REFERENCED from HOMING",
+    0x0C: "NOT REFERENCED from CONFIGURATION", 0x0D: "NOT REFERENCED from DISABLE",
+    0x0E: "NOT REFERENCED from READY", 0x0F: "NOT REFERENCED from MOVING",
+    0x10: "NOT REFERENCED ESP stage error", 0x11: "NOT REFERENCED from JOGGING",
+    0x14: "CONFIGURATION", 0x1E: "HOMING commanded from RS-232-C", 0x1F: "HOMING commanded by SMC-RC",
+    0x28: "MOVING", 0x32: "READY from HOMING", 0x33: "READY from MOVING", 0x34: "READY from DISABLE",
+    0x35: "READY from JOGGING", 0x3C: "DISABLE from READY", 0x3D: "DISABLE from MOVING",
+    0x3E: "DISABLE from JOGGING", 0x46: "JOGGING from READY", 0x47: "JOGGING from DISABLE",
+}
+"""Controller states, the manual's TS description."""
+
+WORKING = frozenset({NR, CF, DI, RD})
+"""Where a working motion parameter may be set (CONFIGURATION stores it, PW0 saves it)."""
+CONFIG_ONLY = frozenset({CF})
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter of the command list with a set and a query form."""
+
+    title: str
+    default: float | int | str
+    low: float = 0.0
+    high: float = 1e12
+    set_in: frozenset[str] = CONFIG_ONLY
+    kind: str = "float"  # float, int, str
+
+
+PARAMS: dict[str, Param] = {
+    "AC": Param("Set/Get acceleration", 80.0, 1e-6, 1e12, WORKING),
+    "BA": Param("Set/Get backlash compensation", 0.0),
+    "BH": Param("Set/Get hysteresis compensation", 0.0),
+    "FD": Param("Set/Get low pass filter for Kd", 1000.0, 1e-6, 2000.0, WORKING),
+    "FE": Param("Set/Get following error limit", 0.5, 1e-6, 1e12, WORKING),
+    "FF": Param("Set/Get friction compensation", 0.0, 0.0, 1e12, WORKING),
+    "HT": Param("Set/Get HOME search type", 1, 0, 4, kind="int"),
+    "ID": Param("Set/Get stage identifier", "URS100BCC", kind="str"),
+    "JR": Param("Set/Get jerk time", 0.05, 0.001, 1e12, WORKING),
+    "KD": Param("Set/Get derivative gain", 0.0, 0.0, 1e12, WORKING),
+    "KI": Param("Set/Get integral gain", 10.0, 0.0, 1e12, WORKING),
+    "KP": Param("Set/Get proportional gain", 100.0, 0.0, 1e12, WORKING),
+    "KV": Param("Set/Get velocity feed forward", 0.0, 0.0, 1e12, WORKING),
+    "OH": Param("Set/Get HOME search velocity", 20.0, 1e-6, 1e12),
+    "OT": Param("Set/Get HOME search time-out", 100.0, 1.0, 1e3),
+    "QI": Param("Set/Get motor's current limits", 1.5, 0.05, 3.0),
+    "SA": Param("Set/Get controller's RS-485 address", 1, 1, 31, kind="int"),
+    "SC": Param("Set/Get control loop state", 1, 0, 1, frozenset({NR, CF, DI, RD}), kind="int"),
+    "SU": Param("Set/Get encoder increment value", 1e-4, 1e-6, 1e12),
+    "VA": Param("Set/Get velocity", 20.0, 1e-6, 1e12, WORKING),
+    "ZX": Param("Set/Get SmartStage configuration", 2, 1, 3, frozenset({NR, CF}), kind="int"),
+}
+"""Stored parameters. A value set in CONFIGURATION is saved by PW0 (the controller's memory);
+one set in another allowed state is a working value that RS forgets."""
+
+PP_ONLY = {"DV": "Set/Get driver voltage", "FR": "Set/Get stepper motor configuration",
+           "VB": "Set/Get base velocity"}
+"""Commands the manual gives for the PP (stepper) version only: this CC controller answers TE X."""
+
+COMMANDS: dict[str, str] = {
+    **{code: p.title for code, p in PARAMS.items()},
+    **PP_ONLY,
+    "JD": "Leave JOGGING state", "JM": "Enter/Leave JOGGING state", "MM": "Enter/Leave DISABLE state",
+    "OR": "Execute HOME search", "PA": "Move absolute", "PR": "Move relative",
+    "PT": "Get motion time for a relative move", "PW": "Enter/Leave CONFIGURATION state",
+    "RA": "Get analog input value", "RB": "Get TTL input value", "RS": "Reset controller",
+    "SB": "Set/Get TTL output value", "SE": "Configure/Execute simultaneous started move",
+    "SL": "Set/Get negative software limit", "SR": "Set/Get positive software limit",
+    "ST": "Stop motion", "TB": "Get command error string", "TE": "Get command error",
+    "TH": "Get set-point position", "TP": "Get current position",
+    "TS": "Get positioner error and controller state", "VE": "Get controller revision information",
+    "ZT": "Get all axis parameters",
+}
+"""Every two-letter command of the manual's command list, with the manual's title."""
+
+ZT_ORDER = ("AC", "BA", "BH", "FD", "FE", "FF", "HT", "JR", "KD", "KI", "KP", "KV", "OH", "OT", "QI",
+            "SA", "SC", "SL", "SR", "SU", "VA", "ZX")
+"""What ZT dumps, one `<addr><CC><value>` line each, between `PW1` and `PW0` (a file that can be
+sent back to configure another controller)."""
+
+
+def state_group(state: int) -> str:
+    """The command-list column a controller state belongs to."""
+    if is_not_referenced(state):
+        return NR
+    if state == CONFIGURATION:
+        return CF
+    if state in (0x1E, 0x1F):
+        return HO
+    if state == MOVING:
+        return MV
+    if is_ready(state):
+        return RD
+    if is_disable(state):
+        return DI
+    return JG
+
+
+def motion_time_s(distance: float, velocity: float, acceleration: float) -> float:
+    """PT: a trapezoidal move's duration (triangular when it never reaches `velocity`)."""
+    d = abs(float(distance))
+    if d * acceleration >= velocity * velocity:
+        return d / velocity + velocity / acceleration
+    return 2.0 * math.sqrt(d / acceleration)
+
+
+# ---------------------------------------------------------------------------------------------
 # Controller
 # ---------------------------------------------------------------------------------------------
 class Smc100(Device):
@@ -159,6 +325,15 @@ class Smc100(Device):
         """Called as on_event("move", t, fields) for every planned motion (truth log)."""
         self._rx = bytearray()
         self.moves = 0
+        self.saved: dict[str, Any] = {code: p.default for code, p in PARAMS.items()}
+        """The controller's memory (what PW0 saved); the table's own figures for AC, VA, OH, SU."""
+        self.saved.update(AC=math.degrees(self.table.accel_rad_s2), VA=math.degrees(self.table.speed_rad_s),
+                          OH=math.degrees(self.table.home_speed_rad_s), SA=self.address)
+        if self.table.encoder_step_rad > 0:
+            self.saved["SU"] = math.degrees(self.table.encoder_step_rad)
+        self._table_rad = {"AC": self.table.accel_rad_s2, "VA": self.table.speed_rad_s,
+                           "OH": self.table.home_speed_rad_s}
+        self._table_deg = {code: self.saved[code] for code in self._table_rad}
         self._reset_state()
 
     def _reset_state(self) -> None:
@@ -169,6 +344,18 @@ class Smc100(Device):
         self.target_deg: float | None = None
         self._end_s: float | None = None  # planned end of the current homing/move/stop
         self._stalling = False
+        self.params: dict[str, Any] = dict(self.saved)
+        self.ttl_out = 0
+        self.se_target_deg: float | None = None
+        self._pending: dict[str, Any] = {}
+        self._apply_motion_params()
+
+    def _apply_motion_params(self) -> None:
+        """AC, VA, OH drive the table's planner (the table's own figures, bit for bit, until changed)."""
+        rad = {code: (self._table_rad[code] if self.params[code] == self._table_deg[code]
+                      else math.radians(float(self.params[code]))) for code in self._table_rad}
+        self.table.accel_rad_s2, self.table.speed_rad_s, self.table.home_speed_rad_s = (
+            rad["AC"], rad["VA"], rad["OH"])
 
     # -- Device surface ---------------------------------------------------------------------
     def fileno(self) -> int | None:
@@ -215,13 +402,28 @@ class Smc100(Device):
     def handle_line(self, line: bytes, t: float) -> None:
         """Act on one command line at device time t; replies go to the port."""
         cmd = parse_command(line)
-        if cmd.address is None or not 1 <= cmd.address <= 31:
+        if cmd.address is None:
+            # the manual: ST and SE without an address act on every controller of the chain
+            if cmd.command == "ST":
+                self._cmd_st(cmd, t)
+            elif cmd.command == "SE" and cmd.param == "":
+                self._execute_simultaneous(t)
+            else:
+                self._error("B")
+            return
+        if not 1 <= cmd.address <= 31:
             self._error("B")
             return
         if cmd.address != self.address:
             return  # another controller on the RS-485 chain
         if cmd.command is None:
             self._error("A")
+            return
+        if cmd.command in PP_ONLY:
+            self._error("X")
+            return
+        if cmd.command in PARAMS:
+            self._param(cmd.command, cmd, t)
             return
         handler = getattr(self, f"_cmd_{cmd.command.lower()}", None)
         if handler is None:
@@ -235,24 +437,57 @@ class Smc100(Device):
     def _error(self, letter: str) -> None:
         self.last_error = letter
 
-    def _state_letter(self) -> str | None:
-        """TE letter for 'not allowed in this state', or None when the state allows motion."""
-        s = self.state
-        if is_not_referenced(s):
-            return "H"
-        if s == CONFIGURATION:
-            return "I"
-        if is_disable(s):
-            return "J"
-        if s == HOMING:
-            return "L"
-        if s == MOVING:
-            return "M"
-        return None
+    def _refused_here(self, allowed: frozenset[str] | set[str]) -> bool:
+        """Leave the state's TE letter and say True when the present state is not `allowed`."""
+        group = state_group(self.state)
+        if group in allowed:
+            return False
+        self._error(STATE_LETTER[group])
+        return True
+
+    def _param(self, code: str, cmd: SmcCommand, t: float) -> None:
+        """A stored parameter: `?` (or nothing) answers it, a value sets it where allowed."""
+        spec = PARAMS[code]
+        if cmd.query or cmd.param == "":
+            self._reply(code, self._format_param(code))
+            return
+        if self._refused_here(spec.set_in):
+            return
+        if spec.kind == "str":
+            value: Any = cmd.param
+            if not 1 <= len(value) <= 31 or not value.isprintable():
+                self._error("C")
+                return
+        else:
+            number = cmd.value
+            if number is None or not spec.low <= number <= spec.high or (
+                    spec.kind == "int" and number != int(number)):
+                self._error("C")
+                return
+            value = int(number) if spec.kind == "int" else float(number)
+        self.params[code] = value
+        if self.state == CONFIGURATION:
+            self._pending[code] = value
+        if code in ("AC", "VA", "OH"):
+            self._apply_motion_params()
+
+    def _format_param(self, code: str) -> str:
+        value = self.params[code]
+        return value if isinstance(value, str) else format_number(value)
 
     def _cmd_te(self, cmd: SmcCommand, t: float) -> None:
         self._reply("TE", self.last_error)
         self.last_error = "@"
+
+    def _cmd_tb(self, cmd: SmcCommand, t: float) -> None:
+        """TB<letter> → that code's text; TB alone → the last error's (and clears it, as TE)."""
+        letter = cmd.param if cmd.param not in ("", "?") else self.last_error
+        if letter not in TE_CODES:
+            self._error("C")
+            return
+        self._reply("TB", f"{letter} {TE_CODES[letter]}")
+        if cmd.param in ("", "?"):
+            self.last_error = "@"
 
     def _cmd_ts(self, cmd: SmcCommand, t: float) -> None:
         self.port.write(encode_status(self.address, self.errors, self.state))
@@ -260,10 +495,54 @@ class Smc100(Device):
     def _cmd_tp(self, cmd: SmcCommand, t: float) -> None:
         self._reply("TP", format_number(self._encoder_deg(t)))
 
+    def _cmd_th(self, cmd: SmcCommand, t: float) -> None:
+        self._reply("TH", format_number(math.degrees(float(self.table.planned_kinematics(t)[0]))))
+
     def _cmd_ve(self, cmd: SmcCommand, t: float) -> None:
         self._reply("VE", f" SMC100CC firmware_sim {__version__}")
 
+    def _cmd_ra(self, cmd: SmcCommand, t: float) -> None:
+        self._reply("RA", "0")  # nothing wired to the analog input: 0 V
+
+    def _cmd_rb(self, cmd: SmcCommand, t: float) -> None:
+        self._reply("RB", "0")  # no TTL input driven
+
+    def _cmd_sb(self, cmd: SmcCommand, t: float) -> None:
+        if cmd.query or cmd.param == "":
+            self._reply("SB", str(self.ttl_out))
+            return
+        value = cmd.value
+        if value is None or value != int(value) or not 0 <= value <= 15:
+            self._error("C")
+            return
+        self.ttl_out = int(value)
+
+    def _cmd_zt(self, cmd: SmcCommand, t: float) -> None:
+        """The multi-line parameter dump: PW1, one set line per parameter, PW0."""
+        lines = [encode_reply(self.address, "PW", "1")]
+        for code in ZT_ORDER:
+            if code == "SL":
+                text = format_number(self.limits_deg[0])
+            elif code == "SR":
+                text = format_number(self.limits_deg[1])
+            else:
+                text = self._format_param(code)
+            lines.append(encode_reply(self.address, code, text))
+        lines.append(encode_reply(self.address, "PW", "0"))
+        self.port.write(b"".join(lines))
+
+    def _cmd_pt(self, cmd: SmcCommand, t: float) -> None:
+        value = cmd.value
+        if value is None:
+            self._error("C")
+            return
+        seconds = motion_time_s(value, float(self.params["VA"]), float(self.params["AC"]))
+        self._reply("PT", format_number(seconds))
+
     def _cmd_rs(self, cmd: SmcCommand, t: float) -> None:
+        if cmd.param == "##":  # RS##: the address back to 1 (saved)
+            self.saved["SA"] = 1
+            self.address = 1
         if self._end_s is not None:
             self.table.stop(t)
         self._reset_state()
@@ -272,9 +551,7 @@ class Smc100(Device):
         s = self.state
         if s == HOMING:
             self._error("E")
-        elif not is_not_referenced(s):
-            self._error(self._state_letter() or "K")
-        else:
+        elif not self._refused_here({NR}):
             self.state = HOMING
             self.errors = 0
             start_deg = self._motor_deg(t)
@@ -288,6 +565,7 @@ class Smc100(Device):
         self._move(cmd, t, relative=True)
 
     def _move(self, cmd: SmcCommand, t: float, *, relative: bool) -> None:
+        """PA/PR, allowed in READY and MOVING (a new target for the move in progress)."""
         if cmd.query:
             if relative or self.target_deg is None:
                 self._error("D")
@@ -298,15 +576,19 @@ class Smc100(Device):
         if value is None:
             self._error("C")
             return
-        letter = self._state_letter()
-        if letter is not None:
-            self._error(letter)
+        if self._refused_here({RD, MV}):
             return
         base = self.target_deg if self.target_deg is not None else self._encoder_deg(t)
         target = base + value if relative else value
+        self._start_move(target, t)
+
+    def _start_move(self, target: float, t: float) -> None:
         lo, hi = self.limits_deg
-        if not lo <= target <= hi:
+        if not lo <= self._encoder_deg(t) <= hi:
             self._error("N")
+            return
+        if not lo <= target <= hi:
+            self._error("G")
             return
         self.moves += 1
         self.state = MOVING
@@ -316,6 +598,32 @@ class Smc100(Device):
         start_deg = self._motor_deg(t)
         self._end_s = float(self.table.command_move(t, math.radians(target), stall_fraction=stall))
         self._move_event("stall" if self._stalling else "move", t, start_deg)
+
+    def _cmd_se(self, cmd: SmcCommand, t: float) -> None:
+        """xxSEnn configures the target of a simultaneous start; a bare SE starts them all."""
+        if cmd.query or cmd.param == "":
+            if self.se_target_deg is None:
+                self._error("D")
+            else:
+                self._reply("SE", format_number(self.se_target_deg))
+            return
+        value = cmd.value
+        if value is None:
+            self._error("C")
+            return
+        if self._refused_here({RD}):
+            return
+        lo, hi = self.limits_deg
+        if not lo <= value <= hi:
+            self._error("G")
+            return
+        self.se_target_deg = value
+
+    def _execute_simultaneous(self, t: float) -> None:
+        if self.se_target_deg is None or state_group(self.state) != RD:
+            return
+        target, self.se_target_deg = self.se_target_deg, None
+        self._start_move(target, t)
 
     def _cmd_st(self, cmd: SmcCommand, t: float) -> None:
         if self.state == MOVING:
@@ -330,6 +638,8 @@ class Smc100(Device):
             self.table.stop(t)
             self._move_event("stop", t, start_deg)
             self.state = NOT_REFERENCED_FROM_HOMING
+        elif self.state in (JOGGING_FROM_READY, JOGGING_FROM_DISABLE):
+            self.state = READY_FROM_JOGGING
 
     def _limit(self, cmd: SmcCommand, t: float, index: int) -> None:
         name = "SL" if index == 0 else "SR"
@@ -340,8 +650,7 @@ class Smc100(Device):
         if value is None or (index == 0 and value > 0.0) or (index == 1 and value < 0.0):
             self._error("C")
             return
-        if self.state in (MOVING, HOMING):
-            self._error(self._state_letter() or "D")
+        if self._refused_here(WORKING):
             return
         self.limits_deg[index] = value
 
@@ -352,18 +661,22 @@ class Smc100(Device):
         self._limit(cmd, t, 1)
 
     def _cmd_pw(self, cmd: SmcCommand, t: float) -> None:
-        """PW1 enters CONFIGURATION (from NOT REFERENCED only), PW0 leaves it."""
+        """PW1 enters CONFIGURATION (from NOT REFERENCED only), PW0 saves and leaves it."""
         if cmd.query or cmd.param == "":
             self._reply("PW", "1" if self.state == CONFIGURATION else "0")
             return
         if cmd.value == 1.0:
-            if is_not_referenced(self.state):
+            if self.state != CONFIGURATION and not self._refused_here({NR}):
                 self.state = CONFIGURATION
-            elif self.state != CONFIGURATION:
-                self._error(self._state_letter() or "K")
+                self._pending = {}
         elif cmd.value == 0.0:
             if self.state == CONFIGURATION:
+                self.saved.update(self._pending)
+                if "SA" in self._pending:
+                    self.address = int(self._pending["SA"])
                 self.state = NOT_REFERENCED_FROM_CONFIGURATION
+            else:
+                self._error(STATE_LETTER[state_group(self.state)])
         else:
             self._error("C")
 
@@ -376,16 +689,39 @@ class Smc100(Device):
             if is_ready(self.state):
                 self.state = DISABLE_FROM_READY
             elif not is_disable(self.state):
-                self._error(self._state_letter() or "D")
+                self._refused_here({RD})
         elif cmd.value == 1.0:
             if is_disable(self.state):
                 self.state = READY_FROM_DISABLE
                 self.errors = 0
                 self.target_deg = self._encoder_deg(t)
             elif not is_ready(self.state):
-                self._error(self._state_letter() or "D")
+                self._refused_here({DI})
         else:
             self._error("C")
+
+    def _cmd_jm(self, cmd: SmcCommand, t: float) -> None:
+        """JM1 enters JOGGING from READY or DISABLE, JM0 leaves it (jogging is the keypad's)."""
+        jogging = self.state in (JOGGING_FROM_READY, JOGGING_FROM_DISABLE)
+        if cmd.query or cmd.param == "":
+            self._reply("JM", "1" if jogging else "0")
+            return
+        if cmd.value == 1.0:
+            if jogging:
+                return
+            if not self._refused_here({RD, DI}):
+                self.state = JOGGING_FROM_READY if is_ready(self.state) else JOGGING_FROM_DISABLE
+        elif cmd.value == 0.0:
+            if jogging:
+                self.state = READY_FROM_JOGGING if self.state == JOGGING_FROM_READY else DISABLE_FROM_JOGGING
+            else:
+                self._error(STATE_LETTER[state_group(self.state)])
+        else:
+            self._error("C")
+
+    def _cmd_jd(self, cmd: SmcCommand, t: float) -> None:
+        if not self._refused_here({JG}):
+            self.state = READY_FROM_JOGGING
 
     # -- physics ---------------------------------------------------------------------------
     def _motor_deg(self, t: float) -> float:

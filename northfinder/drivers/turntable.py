@@ -184,6 +184,10 @@ class Turntable:
         """TP: the encoder position in degrees."""
         return self._parse(smc100.parse_position, self._ask("TP"))
 
+    def stage_id(self) -> str:
+        """ID?: the stage identifier the controller holds (the SMC100 manual's ID command)."""
+        return self._ask("ID", query=True).text.strip()
+
     def soft_limits_deg(self) -> tuple[float, float]:
         """SL?/SR?: the negative and positive software limits in degrees."""
         lo = self._parse(lambda r: smc100.parse_position(r, "SL"), self._ask("SL", query=True))

@@ -1,0 +1,93 @@
+"""The conformance tables (tools/conformance_smc100.py, tools/conformance_canopen.py) hold: no row
+differs from the manual / CiA 301, and rows are pinned with the documents' own examples."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+TOOLS = Path(__file__).resolve().parents[1] / "tools"
+
+
+def _tool(name: str):
+    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def smc():
+    return _tool("conformance_smc100")
+
+
+@pytest.fixture(scope="module")
+def co():
+    return _tool("conformance_canopen")
+
+
+def test_smc100_table_agrees_with_the_manual(smc):
+    table = smc.rows()
+    assert len(table) > 300
+    assert [r for r in table if not r[-1]] == []
+    commands = {r[0] for r in table}
+    assert set(smc.MANUAL) <= commands  # every command of the list has its rows
+
+
+@pytest.mark.parametrize("state, lines, answer", [
+    # the manual's examples: TS after power-up, TE with no error, a query, ZT's first/last lines
+    ("NOT REFERENCED", ["1TS"], "1TS00000A ; TE @"),
+    ("READY", ["1TE"], "1TE@ ; TE @"),
+    ("READY", ["1SR?"], "1SR360 ; TE @"),
+    ("READY", ["1PA400"], "; TE G"),  # displacement out of limits
+    ("MOVING", ["1PA10"], "; TE @"),  # PA allowed in MOVING
+    ("MOVING", ["1OR"], "; TE M"),
+    ("CONFIGURATION", ["1PA10"], "; TE I"),
+    ("READY", ["1DV12"], "; TE X"),  # PP-only command on a CC controller
+    ("READY", ["1TBH"], "1TBH Command not allowed in NOT REFERENCED state ; TE @"),
+])
+def test_smc100_rows_pinned_with_manual_examples(smc, state, lines, answer):
+    assert smc.run(state, lines) == answer
+
+
+def test_smc100_zt_dump_is_a_configuration_file(smc):
+    got = smc.run("READY", ["1ZT"]).split(" ; ")[0].split(" / ")
+    assert got[0] == "1PW1" and got[-1] == "1PW0"
+    from firmware_sim.devices.smc100 import ZT_ORDER
+
+    assert [line[1:3] for line in got[1:-1]] == list(ZT_ORDER)
+
+
+def test_smc100_bare_st_stops_the_move(smc):
+    dev, port, t = smc.controller_in("MOVING")
+    dev.handle_line(b"ST", t)
+    dev.advance(dev.table.move_end_s + 0.01)
+    assert dev.state == 0x33 and dev.last_error == "@"
+
+
+def test_canopen_table_agrees_with_cia301(co):
+    table = co.object_rows() + co.rule_rows() + co.behaviour_rows()
+    assert len(table) > 100
+    assert [r for r in table if not r[-1]] == []
+
+
+def test_canopen_procedure_rows_pinned(co):
+    """CiA 301 §7.5.2.38's own sequence on one node: invalidate, count 0, entries, count, validate."""
+    b = co.Bench()
+    try:
+        assert b.write(0x1800, 1, "u32", 0x80000190) == "ok"
+        assert b.write(0x1A00, 0, "u8", 0) == "ok"
+        assert b.write(0x1A00, 1, "u32", 0x20000320) == "ok"
+        assert b.write(0x1A00, 2, "u32", 0x20020008) == "ok"
+        assert b.write(0x1A00, 0, "u8", 2) == "ok"
+        assert b.write(0x1800, 1, "u32", 0x190) == "ok"
+        assert b.read(0x1A00, 0) == "0x02" and b.read(0x1800, 1) == "0x00000190"
+        b.nmt(0x01)
+        frames = [m for m in b.step(0.1) if m.arbitration_id == 0x190]
+        assert len(frames) == 10 and all(len(m.data) == 5 for m in frames)
+    finally:
+        b.close()
