@@ -15,6 +15,26 @@ from northfinder.align.limits import latitude_problem
 from northfinder.errors import InputError
 
 
+HEADING_RANGE_DEG = (-360.0, 360.0)
+"""What `--heading` accepts: one turn either way. A value outside (400 for 40, a typo) is refused,
+not wrapped silently."""
+
+
+def heading_deg(text: str) -> float:
+    """argparse type of `--heading DEG` (find, align): degrees from north, clockwise, within one
+    turn; the simulator wraps it to 0…360."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of degrees") from None
+    lo, hi = HEADING_RANGE_DEG
+    if not (math.isfinite(value) and lo < value < hi):
+        raise argparse.ArgumentTypeError(
+            f"{text}: give a heading between {lo:g} and {hi:g} degrees (0…360 from north, clockwise)"
+        )
+    return value
+
+
 def add_flag(parser: argparse.ArgumentParser, flag: str, **kwargs: Any) -> None:
     """Add a flag unless another align mode already did (`--heading`, `--latitude` are shared)."""
     if flag not in parser._option_string_actions:

@@ -66,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _common.add_flag(
         parser,
         "--heading",
-        type=float,
+        type=_common.heading_deg,
         default=None,
         metavar="DEG",
         help="simulated: the true (mean) heading; gnss on hardware: the heading prior (σ: --heading-std)",

@@ -16,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+from northfinder.cli._common import HEADING_RANGE_DEG
 from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.errors import InputError
 from northfinder.runs import base as run_base
@@ -65,6 +66,10 @@ def _angles(text: str | None, flag: str) -> list[float]:
         raise InputError(f"{flag} {text}: give degrees separated by commas, e.g. 0,120,240") from None
     if not out or not all(math.isfinite(v) for v in out):
         raise InputError(f"{flag} {text}: give at least one finite angle in degrees")
+    lo, hi = HEADING_RANGE_DEG
+    for v in out:
+        if not lo < v < hi:
+            raise InputError(f"{flag} {text}: {v:g} is more than a turn; give headings between {lo:g} and {hi:g}")
     return out
 
 

@@ -1,4 +1,4 @@
-"""`northfinder check --config bench.toml`: probe each device and say what answered.
+"""`northfinder check --config bench.toml` (or `--simulate`): probe each device and say what answered.
 
 One line per device: the stage's version and state, the IMU's rate and format (and that data
 flows), the accelerometer's heartbeat state; one clear line for each device that did not answer.
@@ -21,7 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "check", help="probe the turntable, the IMU and the accelerometer of a bench", description=__doc__
     )
-    p.add_argument("--config", metavar="BENCH_TOML", required=True, help="bench configuration")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--config", metavar="BENCH_TOML", help="bench configuration")
+    src.add_argument("--simulate", action="store_true",
+                     help="start firmware-sim, probe its emulated devices, stop it (try check without hardware)")
     p.set_defaults(func=run)
 
 
@@ -97,7 +100,28 @@ def _probe(
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = bench.load(args.config)
+    if getattr(args, "simulate", False):
+        return run_simulated()
+    return check_bench(bench.load(args.config))
+
+
+def run_simulated() -> int:
+    """`check --simulate`: firmware-sim's bench (default truth and grade) probed like real hardware."""
+    from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
+
+    settings = SimSettings()
+    sim = SimulatorProcess(settings)
+    endpoints = sim.start()
+    try:
+        print(f"note  firmware-sim started (pid {sim.proc.pid if sim.proc else '?'}, grade {settings.grade}); "
+              "probing its devices")
+        return check_bench(bench_config(endpoints, settings.latitude_deg))
+    finally:
+        print(f"note  firmware-sim stopped (exit code {sim.stop()})")
+
+
+def check_bench(cfg: bench.BenchConfig) -> int:
+    """Probe each device of `cfg`; one line per device; exit 0 only if each answered."""
     ports = [p for p in (cfg.turntable.port, cfg.imu.port) if p]
     if len(set(ports)) < len(ports):
         raise ConfigError(

@@ -18,6 +18,7 @@ import threading
 import time
 
 from northfinder import config as bench
+from northfinder.cli._common import heading_deg
 from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.runs import find as find_run
 from northfinder.simulate import SimSettings
@@ -70,7 +71,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--unit", metavar="LABEL", help="unit under test, recorded in the results history")
     sim = p.add_argument_group("simulation (with --simulate; passed on to firmware-sim)")
     d = SimSettings()
-    sim.add_argument("--heading", type=float, default=d.heading_deg, metavar="DEG", help="true heading")
+    sim.add_argument("--heading", type=heading_deg, default=d.heading_deg, metavar="DEG",
+                     help=f"true heading, from north clockwise (default {d.heading_deg:g})")
     sim.add_argument("--pitch", type=float, default=d.pitch_deg, metavar="DEG", help="true pitch")
     sim.add_argument("--roll", type=float, default=d.roll_deg, metavar="DEG", help="true roll")
     sim.add_argument(
