@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from typing import Any
 
 from northfinder.align.limits import latitude_problem
@@ -66,9 +67,21 @@ class DeviceTimeProgress:
             console=Console(stderr=True),
             disable=not enabled,
         )
+        self.plain = enabled and not self.progress.console.is_terminal
+        """stderr is a file or a pipe: a plain line at each tenth of the window, no redrawn bar."""
+        self.duration_s = duration_s
+        self._tenths_shown = -1
+        if self.plain:
+            self.progress.disable = True
         self.task = self.progress.add_task("device time", total=duration_s, info="waiting for data")
 
     def show(self, done_s: float, info: str) -> None:
+        if self.plain:
+            tenth = int(10 * done_s / self.duration_s) if self.duration_s > 0 else 10
+            if tenth > self._tenths_shown:
+                self._tenths_shown = tenth
+                print(f"device time {done_s:.0f} of {self.duration_s:g} s: {info}", file=sys.stderr, flush=True)
+            return
         self.progress.update(self.task, completed=done_s, info=info)
 
     def __enter__(self) -> DeviceTimeProgress:
