@@ -185,7 +185,8 @@ def _heading_panel(ax: Any, result: dict[str, Any]) -> None:
     """The heading of each fit with its 1σ bar: the result, the dwells alone, every method; the truth."""
     rows: list[tuple[str, float, float | None]] = []
     motion, dwell = result.get("motion_fit") or {}, result.get("dwell_fit")
-    rows.append((f"result ({result.get('plan', 'positions')})", result["heading_deg"], result["heading_std_deg"]))
+    plan = result.get("plan", "positions")
+    rows.append((f"result ({plan})", result["heading_deg"], result["heading_std_deg"]))
     if motion.get("available") and dwell:
         rows.append(("dwell means only", dwell["heading_deg"], dwell["heading_std_deg"]))
     for name, m in result.get("methods", {}).items():
@@ -196,7 +197,7 @@ def _heading_panel(ax: Any, result: dict[str, Any]) -> None:
     truth_d = (result["truth"]["heading_deg"] - ref + 180.0) % 360.0 - 180.0 if "truth" in result else 0.0
     lim = 1.25 * max([4.0 * (std or 0.0) + abs(d) for (_, _, std), d in zip(rows, diffs, strict=True) if std]
                      + [abs(truth_d) + result["heading_std_deg"]])
-    for y, ((label, h, std), d) in enumerate(zip(rows, diffs, strict=True)):
+    for y, ((_, _, std), d) in enumerate(zip(rows, diffs, strict=True)):
         if abs(d) > lim:  # off scale (the uncompensated method): an arrow at the edge and its value
             edge = np.sign(d) * lim * 0.97
             ax.plot([edge], [y], ">" if d > 0 else "<", color="0.4")

@@ -21,7 +21,6 @@ from typing import Any
 from northfinder.config import BenchConfig
 from northfinder.errors import DeviceError, InputError
 
-
 FIRMWARE_SIM_USAGE_EXIT = 2
 """firmware-sim's exit code when it refuses its command line (a fault, grade or value it does not
 know), before it opens any device: northfinder passes that on as its own usage error (exit 2)."""
@@ -163,7 +162,7 @@ class SimulatorProcess:
                     err = self._stderr_tail()
                     usage = self.proc.returncode == FIRMWARE_SIM_USAGE_EXIT
                     self.stop()
-                    if usage:  # its own flag check refused a value we passed on: a usage error, not a device's
+                    if usage:  # its own flag check refused a value passed on: a usage error, not a device's
                         raise InputError(f"--simulate: {err.removeprefix('firmware-sim: ')}")
                     raise DeviceError("firmware-sim", None, f"exited before it was ready: {err}")
                 buf += chunk

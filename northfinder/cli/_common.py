@@ -15,7 +15,6 @@ from typing import Any
 from northfinder.align.limits import latitude_problem
 from northfinder.errors import InputError
 
-
 HEADING_RANGE_DEG = (-360.0, 360.0)
 """What `--heading` accepts: one turn either way. A value outside (400 for 40, a typo) is refused,
 not wrapped silently."""
@@ -80,7 +79,8 @@ class DeviceTimeProgress:
             tenth = int(10 * done_s / self.duration_s) if self.duration_s > 0 else 10
             if tenth > self._tenths_shown:
                 self._tenths_shown = tenth
-                print(f"device time {done_s:.0f} of {self.duration_s:g} s: {info}", file=sys.stderr, flush=True)
+                print(f"device time {done_s:.0f} of {self.duration_s:g} s: {info}", file=sys.stderr,
+                      flush=True)
             return
         self.progress.update(self.task, completed=done_s, info=info)
 

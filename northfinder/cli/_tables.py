@@ -47,10 +47,9 @@ def fitted_tables(
 ) -> list[Any]:
     """rich Tables holding `headers` × `rows`, split by columns to fit `width` (see split_columns);
     the titles say "(continued)" after the first. Numbers are right-aligned and never wrapped."""
+    from rich.cells import cell_len
     from rich.markup import escape
     from rich.table import Table
-
-    from rich.cells import cell_len
 
     widths = [column_width(h, [r[k] for r in rows]) for k, h in enumerate(headers)]
     whole = [max(w, cell_len(h)) for w, h in zip(widths, headers, strict=True)]

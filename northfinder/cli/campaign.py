@@ -69,7 +69,8 @@ def _angles(text: str | None, flag: str) -> list[float]:
     lo, hi = HEADING_RANGE_DEG
     for v in out:
         if not lo < v < hi:
-            raise InputError(f"{flag} {text}: {v:g} is more than a turn; give headings between {lo:g} and {hi:g}")
+            raise InputError(f"{flag} {text}: {v:g} is more than a turn; give headings between {lo:g} "
+                             f"and {hi:g}")
     return out
 
 

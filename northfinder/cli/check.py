@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--config", metavar="BENCH_TOML", help="bench configuration")
     src.add_argument("--simulate", action="store_true",
-                     help="start firmware-sim, probe its emulated devices, stop it (try check without hardware)")
+                     help="start firmware-sim, probe its emulated devices, stop it (check without hardware)")
     p.set_defaults(func=run)
 
 
@@ -113,8 +113,8 @@ def run_simulated() -> int:
     sim = SimulatorProcess(settings)
     endpoints = sim.start()
     try:
-        print(f"note  firmware-sim started (pid {sim.proc.pid if sim.proc else '?'}, grade {settings.grade}); "
-              "probing its devices")
+        pid = sim.proc.pid if sim.proc else "?"
+        print(f"note  firmware-sim started (pid {pid}, grade {settings.grade}); probing its devices")
         return check_bench(bench_config(endpoints, settings.latitude_deg))
     finally:
         print(f"note  firmware-sim stopped (exit code {sim.stop()})")

@@ -101,4 +101,5 @@ def report_samples(rd: RunDir, block: Any = None) -> dict[str, Any] | None:
     if placed is None or start is None:
         return None
     alpha, omega, gyro, _ = placed
-    return {"alpha_deg": alpha, "omega_dps": omega, "gyro_dph": gyro, "rate_hz": float(start["imu"]["rate_hz"])}
+    rate_hz = float(start["imu"]["rate_hz"])
+    return {"alpha_deg": alpha, "omega_dps": omega, "gyro_dph": gyro, "rate_hz": rate_hz}
