@@ -135,14 +135,26 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(16, 5), gridspec_kw={"width_ratios": [2.2, 1, 1.4]})
+    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(16, 5.6), gridspec_kw={"width_ratios": [2.2, 1.2, 1.4]})
     _finds_panel(a1, state)
     _histogram_panel(a2, state)
     _methods_panel(a3, state)
+    fig.suptitle(campaign_title(state), fontsize=11)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+def campaign_title(state: dict[str, Any]) -> str:
+    """The figure's title: unit, UTC date, grade and seed (simulated) or the real bench, the plan."""
+    sim = state.get("simulate") or {}
+    when = str(state.get("started_utc") or "")[:16].replace("T", " ")
+    plan = state["plan"]
+    src = f"simulated, grade {sim.get('grade')}, seeds from {sim.get('seed')}" if sim else "real bench"
+    return (f"northfinder campaign — unit {state.get('unit') or 'not given'}, {when} UTC, {src}; "
+            f"{len(state['runs'])} finds of {plan['positions']} positions × {plan['dwell_s']:g} s, "
+            f"method {state['method']}")
 
 
 def _finds_panel(a1: Any, state: dict[str, Any]) -> None:
@@ -171,24 +183,39 @@ def _finds_panel(a1: Any, state: dict[str, Any]) -> None:
     a1.grid(True, alpha=0.3)
 
 
+HISTOGRAM_MIN_FINDS = 10
+"""Fewer finds than this are drawn one by one (a rug), not as a histogram of spikes."""
+
+
 def _histogram_panel(a2: Any, state: dict[str, Any]) -> None:
-    """The deviations' histogram with the normal curve of the mean reported σ."""
+    """The deviations against the normal curve of the mean reported σ: a histogram of counts (the
+    curve scaled to counts per bin) from HISTOGRAM_MIN_FINDS finds on, each find as a tick below."""
     main = state["method"]
     m = state["statistics"][main]
     dev = np.array([r["error_deg"] for r in state["runs"]]) * ARCMIN_PER_DEG
-    a2.hist(dev, bins=max(5, min(20, len(dev) // 2)), density=True, alpha=0.6, label="finds")
-    if m.get("mean_reported_sigma_arcmin"):
-        s0 = m["mean_reported_sigma_arcmin"]
-        g = np.linspace(dev.min() - 2 * s0, dev.max() + 2 * s0, 200)
-        a2.plot(
-            g,
-            np.exp(-0.5 * ((g - m["mean_arcmin"]) / s0) ** 2) / (s0 * np.sqrt(2 * np.pi)),
-            label=f"N(mean, reported σ {s0:.3f}′)",
-        )
+    s0 = m.get("mean_reported_sigma_arcmin") or 0.0
+    lo, hi = min(dev.min(), m["mean_arcmin"] - 3 * s0), max(dev.max(), m["mean_arcmin"] + 3 * s0)
+    if len(dev) >= HISTOGRAM_MIN_FINDS:
+        bins = np.linspace(lo, hi, max(5, min(20, len(dev) // 2)) + 1)
+        a2.hist(dev, bins=bins, alpha=0.6, label=f"finds ({len(dev)})")
+        scale = len(dev) * (bins[1] - bins[0])
+        a2.set_ylabel("finds per bin")
+    else:
+        scale = 1.0
+        a2.set_ylabel("density of N(mean, reported σ) [1/arc min]")
+    if s0:
+        g = np.linspace(lo, hi, 200)
+        curve = scale * np.exp(-0.5 * ((g - m["mean_arcmin"]) / s0) ** 2) / (s0 * np.sqrt(2 * np.pi))
+        a2.plot(g, curve, color="C1", label=f"N(mean, reported σ {s0:.3f}′)")
+    top = a2.get_ylim()[1]
+    a2.plot(dev, np.full(dev.shape, -0.04 * top), "|", color="C0", ms=14, mew=1.5,
+            label=f"each find ({len(dev)})" if len(dev) < HISTOGRAM_MIN_FINDS else "each find")
+    a2.set_ylim(-0.09 * top, top * 1.05)
     a2.set_xlabel(f"{main} deviation [arc min]")
-    a2.set_ylabel("density")
-    a2.set_title(f"observed std {m['std_arcmin']:.3f}′" if m.get("std_arcmin") is not None else "")
-    a2.legend(fontsize=8)
+    std = m.get("std_arcmin")
+    a2.set_title(f"observed std {std:.3f}′ vs reported σ {s0:.3f}′" if std is not None else
+                 f"1 find: no spread yet (reported σ {s0:.3f}′)")
+    a2.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, frameon=False)
     a2.grid(True, alpha=0.3)
 
 
@@ -197,12 +224,14 @@ def _methods_panel(a3: Any, state: dict[str, Any]) -> None:
     stats = state["statistics"]
     names = list(stats)
     xi = np.arange(len(names))
-    means = [stats[n]["mean_arcmin"] for n in names]
-    stds = [stats[n]["std_arcmin"] or 0.0 for n in names]
-    a3.errorbar(xi - 0.1, means, yerr=stds, fmt="o", capsize=4, label="mean ± std")
-    a3.plot(xi + 0.1, [stats[n]["rms_arcmin"] for n in names], "s", label="RMS")
+    shown = ~_clip_outliers(a3, xi, names, stats)  # the off-scale ones are written in, not drawn
+    means = np.array([stats[n]["mean_arcmin"] for n in names])
+    stds = np.array([stats[n]["std_arcmin"] or 0.0 for n in names])
+    rms = np.array([stats[n]["rms_arcmin"] for n in names])
+    a3.errorbar(xi[shown] - 0.1, means[shown], yerr=stds[shown], fmt="o", capsize=4, label="mean ± std")
+    a3.plot(xi[shown] + 0.1, rms[shown], "s", label="RMS")
     a3.axhline(0.0, color="k", lw=1)
-    _clip_outliers(a3, xi, names, stats)
+    a3.set_xlim(-0.6, len(names) - 0.25)  # room for an off-scale box at the last place
     a3.set_xticks(xi, [SHORT.get(n, n) for n in names], rotation=30, ha="right")
     a3.set_ylabel("deviation from reference [arc min]")
     a3.set_title("every method")
@@ -210,14 +239,16 @@ def _methods_panel(a3: Any, state: dict[str, Any]) -> None:
     a3.grid(True, alpha=0.3)
 
 
-def _clip_outliers(ax: Any, xi: np.ndarray, names: list[str], stats: dict[str, Any]) -> None:
+def _clip_outliers(ax: Any, xi: np.ndarray, names: list[str], stats: dict[str, Any]) -> np.ndarray:
     """Scale the method panel to the methods within 5× of the best one's extent; a method far
-    off (the uncompensated one on a tilted table) is written in as text at the panel's edge."""
+    off (the uncompensated one on a tilted table) is written in as text inside the panel at its
+    place. Returns which methods are off scale."""
     extent = [abs(stats[n]["mean_arcmin"]) + (stats[n]["std_arcmin"] or 0.0) for n in names]
     extent = [max(e, stats[n]["rms_arcmin"]) for e, n in zip(extent, names, strict=True)]
     limit = 5.0 * min(extent)
-    if max(extent) <= limit:
-        return
+    off = np.array([e > limit for e in extent])
+    if not off.any():
+        return off
     lim = 1.15 * max(e for e in extent if e <= limit)
     ax.set_ylim(-lim, lim)
     for x, n, e in zip(xi, names, extent, strict=True):
@@ -230,6 +261,7 @@ def _clip_outliers(ax: Any, xi: np.ndarray, names: list[str], stats: dict[str, A
                 f"RMS {s['rms_arcmin']:.1f}′",
                 ha="center",
                 va="center",
-                fontsize=8,
+                fontsize=7,
                 bbox={"facecolor": "white", "alpha": 0.8},
             )
+    return off
