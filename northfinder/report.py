@@ -315,3 +315,123 @@ def save_report(fig: Any, path: str | Path) -> Path:
     fig.savefig(out, dpi=80)
     plt.close(fig)
     return out
+
+
+def align_title(mode: str, result: dict[str, Any]) -> str:
+    """An align report's title: mode, method, heading ± σ, and the truth and error of a simulated run."""
+    title = (f"align --mode {mode} ({result.get('method', mode)}): {result['heading_deg']:.3f}° ± "
+             f"{result['heading_std_deg']:.3f}° (1σ)")
+    if "truth" in result and "error_deg" in result:
+        title += f", truth {result['truth']['heading_deg']:.3f}°, error {result['error_deg']:+.3f}°"
+    if not result.get("complete", True):
+        title += " — INCOMPLETE"
+    return title
+
+
+SWAY_ZOOM_S = 40.0
+"""The swaying report shows this much of the body rates sample by sample (the sway's shape); the
+whole window as the rates' RMS per SWAY_RMS_WINDOW_S."""
+SWAY_RMS_WINDOW_S = 5.0
+
+
+def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], path: str | Path) -> Path:
+    """report.png of `align --mode swaying`: the body rates over the first SWAY_ZOOM_S (the sway), their
+    RMS over the whole window, and the cone fit's residual per axis of the initial body frame."""
+    fig, axes = report_axes(3, (9.5, 10))
+    t, w = np.asarray(resid["t_gyro_s"], dtype=float), np.asarray(resid["gyro_dps"], dtype=float)
+    ax = axes[0]
+    zoom = t <= t[0] + SWAY_ZOOM_S if t.size else np.zeros(0, dtype=bool)
+    for j, name in enumerate("xyz"):
+        ax.plot(t[zoom], w[zoom, j], lw=0.7, label=f"gyro {name}")
+    ax.set_ylabel("body rate [deg/s]")
+    ax.set_xlabel("device time since the first sample [s]")
+    span = float(t[-1] - t[0]) if t.size else 0.0
+    ax.set_title(f"the sway: body rates, first {min(SWAY_ZOOM_S, span):.0f} s of {span:.0f} s", fontsize=9)
+    ax.legend(loc="upper right", fontsize=8, ncol=3)
+    ax.grid(True, alpha=0.3)
+    ax = axes[1]
+    if t.size > 1:
+        edges = np.arange(t[0], t[-1] + SWAY_RMS_WINDOW_S, SWAY_RMS_WINDOW_S)
+        k = np.clip(np.digitize(t, edges) - 1, 0, len(edges) - 1)
+        centres = edges + SWAY_RMS_WINDOW_S / 2
+        for j, name in enumerate("xyz"):
+            counts = np.bincount(k, None, len(edges))
+            full = counts >= 0.5 * counts.max()  # a last, partly filled window left out
+            rms = np.sqrt(np.bincount(k, w[:, j] ** 2, len(edges))[full] / counts[full])
+            ax.plot(centres[full], rms, "-o", ms=2.5, lw=1.0, label=f"gyro {name}")
+    ax.set_ylabel(f"body rate RMS per {SWAY_RMS_WINDOW_S:g} s [deg/s]")
+    ax.set_xlabel("device time since the first sample [s]")
+    ax.set_title("the sway over the whole window", fontsize=9)
+    ax.legend(loc="upper right", fontsize=8, ncol=3)
+    ax.grid(True, alpha=0.3)
+    ax = axes[2]
+    r = np.asarray(resid["residual_ug"], dtype=float)
+    for j, name in enumerate("xyz"):
+        mean = float(np.mean(r[:, j])) if r.size else float("nan")
+        ax.plot(resid["t_s"], r[:, j], marker=".",
+                label=f"{name} of the initial body frame (mean {mean:+.1f} µg)")
+    ax.set_ylabel("cone-fit residual [µg]")
+    ax.set_xlabel("window centre, device time [s]")
+    ax.set_title("specific force (smoothed) − the fitted Earth-rate cone and lever-arm sway\n"
+                 "a constant offset on an axis is the accelerometer's bias (not fitted; in σ as its prior)",
+                 fontsize=9)
+    ax.legend(loc="center right", fontsize=7)
+    ax.grid(True, alpha=0.3)
+    fig.suptitle(align_title("swaying", result), fontsize=10)
+    return save_report(fig, path)
+
+
+def _plain_symlog(ax: Any, linthresh: float) -> None:
+    """A symmetric-log y axis whose tick labels read as plain degrees (0.1, 1, 10, −10), not 10⁰."""
+    import matplotlib.ticker as mticker
+
+    ax.set_yscale("symlog", linthresh=linthresh)
+    ax.yaxis.set_major_locator(mticker.SymmetricalLogLocator(base=10, linthresh=linthresh))
+    ax.yaxis.set_major_formatter(mticker.FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.yaxis.set_minor_formatter(mticker.NullFormatter())
+
+
+def write_gnss_report(result: dict[str, Any], hist: dict[str, Any], path: str | Path) -> Path:
+    """report.png of `align --mode gnss`: heading error (simulated) or heading with ±3σ against time,
+    the IMU position error or the heading σ, and the lever arm estimate (dashed: the truth)."""
+    fig, axes = report_axes(3, (9.5, 10), sharex=True)
+    t = np.asarray(hist["t_s"])
+    ax = axes[0]
+    sig = np.asarray(hist["heading_std_deg"])
+    if "error_deg" in hist:
+        ax.plot(t, hist["error_deg"], label=f"{result['method']} error")
+        ax.plot(hist["small_t_s"], hist["small_error_deg"], label="small-angle filter error", alpha=0.7)
+        ax.fill_between(t, -3 * sig, 3 * sig, color="grey", alpha=0.3, label="±3σ (sin/cos)")
+        ax.set_ylabel("heading error [deg] (symmetric log)")
+        _plain_symlog(ax, 0.1)
+    else:
+        ax.plot(t, hist["heading_deg"], label="heading")
+        ax.plot(t, np.asarray(hist["heading_deg"]) + 3 * sig, "k:", lw=0.8, label="±3σ")
+        ax.plot(t, np.asarray(hist["heading_deg"]) - 3 * sig, "k:", lw=0.8)
+        ax.set_ylabel("heading [deg]")
+    ax.set_title("heading against time", fontsize=9)
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    ax = axes[1]
+    if "position_error_m" in hist:
+        ax.plot(t, hist["position_error_m"], label="IMU position error")
+        ax.set_ylabel("IMU position error [m]")
+    else:
+        ax.plot(t, sig, label="heading 1σ")
+        ax.set_ylabel("heading 1σ [deg]")
+    ax.set_yscale("log")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    ax = axes[2]
+    la = np.asarray(hist["lever_arm_m"])
+    truth_la = (result.get("truth") or {}).get("lever_arm_m")
+    for j, name in enumerate("xyz"):
+        (line,) = ax.plot(t, la[:, j], label=f"lever arm {name}")
+        if truth_la is not None:
+            ax.axhline(truth_la[j], color=line.get_color(), ls="--", lw=0.8)
+    ax.set_ylabel("lever arm [m] (dashed: truth)" if truth_la is not None else "lever arm [m]")
+    ax.set_xlabel("device time since the first IMU sample [s]")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    fig.suptitle(align_title("gnss", result), fontsize=10)
+    return save_report(fig, path)
