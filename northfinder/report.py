@@ -335,8 +335,13 @@ SWAY_RMS_WINDOW_S = 5.0
 
 
 def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], path: str | Path) -> Path:
-    """report.png of `align --mode swaying`: the body rates over the first SWAY_ZOOM_S (the sway), their
-    RMS over the whole window, and the cone fit's residual per axis of the initial body frame."""
+    """report.png of `align --mode swaying` (draw_swaying_report)."""
+    return save_report(draw_swaying_report(result, resid), path)
+
+
+def draw_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray]) -> Any:
+    """The body rates over the first SWAY_ZOOM_S (the sway), their RMS over the whole window, and the
+    cone fit's residual per axis of the initial body frame."""
     fig, axes = report_axes(3, (9.5, 10))
     t, w = np.asarray(resid["t_gyro_s"], dtype=float), np.asarray(resid["gyro_dps"], dtype=float)
     ax = axes[0]
@@ -378,7 +383,7 @@ def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], p
     ax.legend(loc="center right", fontsize=7)
     ax.grid(True, alpha=0.3)
     fig.suptitle(align_title("swaying", result), fontsize=10)
-    return save_report(fig, path)
+    return fig
 
 
 def _plain_symlog(ax: Any, linthresh: float) -> None:
@@ -392,8 +397,13 @@ def _plain_symlog(ax: Any, linthresh: float) -> None:
 
 
 def write_gnss_report(result: dict[str, Any], hist: dict[str, Any], path: str | Path) -> Path:
-    """report.png of `align --mode gnss`: heading error (simulated) or heading with ±3σ against time,
-    the IMU position error or the heading σ, and the lever arm estimate (dashed: the truth)."""
+    """report.png of `align --mode gnss` (draw_gnss_report)."""
+    return save_report(draw_gnss_report(result, hist), path)
+
+
+def draw_gnss_report(result: dict[str, Any], hist: dict[str, Any]) -> Any:
+    """Heading error (simulated) or heading with ±3σ against time, the IMU position error or the
+    heading σ, and the lever arm estimate (dashed: the truth)."""
     fig, axes = report_axes(3, (9.5, 10), sharex=True)
     t = np.asarray(hist["t_s"])
     ax = axes[0]
@@ -434,4 +444,4 @@ def write_gnss_report(result: dict[str, Any], hist: dict[str, Any], path: str | 
     ax.legend(loc="upper right", fontsize=8)
     ax.grid(True, alpha=0.3)
     fig.suptitle(align_title("gnss", result), fontsize=10)
-    return save_report(fig, path)
+    return fig

@@ -130,6 +130,16 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
     """campaign.png: the main method's deviation per find with its ±1σ bar against the reference
     (0), a histogram of the deviations with the normal curve of the mean reported σ, and every
     method's mean ± std and RMS side by side."""
+    import matplotlib.pyplot as plt
+
+    fig = draw_figure(state)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def draw_figure(state: dict[str, Any]) -> Any:
+    """campaign.png's figure (write_figure)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -141,9 +151,7 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
     _methods_panel(a3, state)
     fig.suptitle(campaign_title(state), fontsize=11)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return fig
 
 
 def campaign_title(state: dict[str, Any]) -> str:

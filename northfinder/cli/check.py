@@ -109,7 +109,7 @@ def run_simulated() -> int:
     """`check --simulate`: firmware-sim's bench (default truth and grade) probed like real hardware."""
     from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 
-    settings = SimSettings()
+    settings = SimSettings(time_scale=1.0)  # real time: probing needs no speed, and a loaded host keeps up
     sim = SimulatorProcess(settings)
     endpoints = sim.start()
     try:
