@@ -109,15 +109,32 @@ def run_simulated() -> int:
     """`check --simulate`: firmware-sim's bench (default truth and grade) probed like real hardware."""
     from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 
-    settings = SimSettings(time_scale=1.0)  # real time: probing needs no speed, and a loaded host keeps up
+    settings = SimSettings()
     sim = SimulatorProcess(settings)
     endpoints = sim.start()
     try:
+        _wait_for_simulated_imu(str(endpoints["imu"]))
         pid = sim.proc.pid if sim.proc else "?"
         print(f"note  firmware-sim started (pid {pid}, grade {settings.grade}); probing its devices")
         return check_bench(bench_config(endpoints, settings.latitude_deg))
     finally:
         print(f"note  firmware-sim stopped (exit code {sim.stop()})")
+
+
+SIM_IMU_START_S = 20.0
+"""firmware-sim prints its endpoints a few seconds (3–5 s measured on a quiet host) before its IMU
+streams to the first client; check waits this long for that first frame, so that the probe's own
+2 s timeout tests the link and not the simulator's start-up."""
+
+
+def _wait_for_simulated_imu(port: str) -> None:
+    from northfinder.drivers.imu import Imu
+
+    try:
+        with Imu(port, timeout_s=SIM_IMU_START_S):
+            pass
+    except NorthfinderError:
+        pass  # the probe below says what is wrong, in its own words
 
 
 def check_bench(cfg: bench.BenchConfig) -> int:
