@@ -80,7 +80,7 @@ def _plan_rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         how = " (rests reached the long way round, whole turns both ways)" if kind == "sweep" else ""
         last = "the rest after the return" if n.get("through_return") else "the last"
         rows.append(("plan", f"{kind}{how}: every gyro sample, {n['used_device_s']:.1f} s from the "
-                     f"first dwell to {last} (dwells alone ± {dwell['heading_std_deg']:.4f}°)"))
+                     f"first dwell to {last} (dwells alone ±{dwell['heading_std_deg']:.4f}°)"))
     elif motion is not None:
         rows.append(("plan", "positions (dwells only): the motion samples could not be used — "
                      f"{motion['reason']}"))
@@ -183,6 +183,10 @@ def _print_faults(faults: dict[str, Any] | None, console: Any) -> None:
         console.print(escape(line))
 
 
+NARROW_COLUMNS = 120
+"""A terminal narrower than this gets the compact live progress (ProgressView.narrow)."""
+
+
 class ProgressView:
     """rich live progress: position k of n, dwell in device time, live gyro mean and σ."""
 
@@ -195,9 +199,11 @@ class ProgressView:
         self.plain = enabled and not self.console.is_terminal
         """stderr is a file or a pipe: one plain line per event instead of a redrawn bar."""
         self._last_dwell: Progress | None = None
+        self.narrow = self.console.width < NARROW_COLUMNS
+        """Below NARROW_COLUMNS: a short bar and the dwell's numbers without words, so that no line is cut."""
         self.progress = Progress(
             TextColumn("{task.description}"),
-            BarColumn(),
+            BarColumn(bar_width=8 if self.narrow else 40),
             TextColumn("{task.fields[info]}"),
             TimeElapsedColumn(),
             console=self.console,
@@ -228,12 +234,13 @@ class ProgressView:
             self.progress.update(
                 self.pos_task, info=f"position {p.position} of {p.positions} at {p.target_deg:.1f}°"
             )
-            self.progress.update(
-                self.dwell_task,
-                completed=p.dwell_done_s,
-                info=f"{p.dwell_done_s:5.1f}/{p.dwell_s:g} s  gyro x {m[0]:+8.3f} y {m[1]:+8.3f} "
-                f"z {m[2]:+8.3f} °/h  σ(mean) {s[1]:.3f} °/h",
-            )
+            if self.narrow:
+                info = (f"{p.dwell_done_s:4.1f}/{p.dwell_s:g} s x {m[0]:+.2f} y {m[1]:+.2f} "
+                        f"z {m[2]:+.2f} °/h σ {s[1]:.3f}")
+            else:
+                info = (f"{p.dwell_done_s:5.1f}/{p.dwell_s:g} s  gyro x {m[0]:+8.3f} y {m[1]:+8.3f} "
+                        f"z {m[2]:+8.3f} °/h  σ(mean) {s[1]:.3f} °/h")
+            self.progress.update(self.dwell_task, completed=p.dwell_done_s, info=info)
         elif p.phase == "measured":
             self.progress.update(self.pos_task, completed=p.position)
 
