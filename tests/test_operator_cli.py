@@ -114,6 +114,22 @@ def test_find_on_an_80_column_terminal_cuts_no_number(tmp_path):
         assert f"{p['gyro_dph'][1]:+.4f}" in summary
 
 
+def test_history_at_80_columns_and_piped(tmp_path):
+    import shutil
+
+    shutil.copytree(DATA / "find-r5", tmp_path / "runs" / "find-r5")
+    db = str(tmp_path / "h.sqlite")
+    assert run_cli("history", "--db", db, "--rebuild", str(tmp_path / "runs"), cwd=tmp_path).returncode == 0
+    code, out = _run_on_pty(["history", "--db", db], tmp_path, 80, timeout_s=60)
+    text = ANSI.sub("", out).replace("\r", "")
+    assert code == 0 and "…" not in text, text
+    assert max(len(line) for line in text.splitlines()) <= 80
+    for number in ("36.9529", "0.0567", "-0.0471", "40.000", "2026-11-25 22:16:22", "8 × 5 s"):
+        assert number in text, number
+    piped = run_cli("history", "--db", db, cwd=tmp_path)
+    assert "…" not in piped.stdout and "\x1b[" not in piped.stdout and "(continued)" not in piped.stdout
+
+
 # -- the bad-input table: command → exit code → one line -----------------------------------------
 BAD_INPUT = [
     # (argv, exit code, words the one line must hold)

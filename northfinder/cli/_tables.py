@@ -73,3 +73,27 @@ def print_fitted(console: Any, title: str, headers: Sequence[str], rows: Sequenc
     """Print `fitted_tables` at the console's width."""
     for table in fitted_tables(title, headers, rows, console.width, keep):
         console.print(table)
+
+
+def print_table_fitted(console: Any, table: Any, keep: int = 1) -> None:
+    """Print a rich Table already built (its cells as markup) split by columns to the console's
+    width as `fitted_tables` does, each column keeping its justification; for tables built
+    elsewhere (the history's), so that their code changes by one line."""
+    from rich.cells import cell_len
+    from rich.table import Table
+
+    headers = [str(c.header) for c in table.columns]
+    cells = [[str(x) for x in c._cells] for c in table.columns]
+    rows = list(zip(*cells, strict=True)) if cells else []
+    widths = [column_width(h, col) for h, col in zip(headers, cells, strict=True)]
+    whole = [max(w, cell_len(h)) for w, h in zip(widths, headers, strict=True)]
+    if len(split_columns(whole, console.width, keep)) == 1:
+        widths = whole
+    title = str(table.title or "")
+    for n, group in enumerate(split_columns(widths, console.width, keep)):
+        t = Table(title=title if n == 0 else f"{title} (continued)")
+        for k in group:
+            t.add_column(headers[k], justify=table.columns[k].justify, width=widths[k], overflow="fold")
+        for r in rows:
+            t.add_row(*(r[k] for k in group))
+        console.print(t)

@@ -137,4 +137,6 @@ def _print(rows: list[dict[str, Any]], db: Path) -> None:
             escape(faults),
             escape(_short(r["run_dir"])),
         )
-    console.print(t)
+    from northfinder.cli._tables import print_table_fitted  # split by columns at 80: no number cut
+
+    print_table_fitted(console, t)
