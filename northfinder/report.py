@@ -210,7 +210,9 @@ def _heading_panel(ax: Any, result: dict[str, Any]) -> None:
     ax.invert_yaxis()
     if "truth" in result:
         ax.axvline(truth_d, color="C2", lw=1.2, label=f"truth {result['truth']['heading_deg']:.3f}°")
-        ax.legend(fontsize=7, loc="lower right")
+        ax.text(truth_d, -0.75, f"truth {result['truth']['heading_deg']:.3f}°", color="C2", fontsize=7,
+                ha="center", va="bottom")  # above the first row, clear of every point and note
+        ax.set_ylim(len(rows) - 0.5, -1.1)
     ax.axvline(0.0, color="0.7", lw=0.8)
     ax.set_xlabel(f"heading − {ref:.3f}° [deg] (bars: 1σ)", fontsize=8)
     ax.set_title("heading of each fit", fontsize=9)

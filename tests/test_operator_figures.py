@@ -56,7 +56,7 @@ def test_find_report_names_run_plan_result_and_labels_every_panel():
     assert has(t["title"], "every gyro sample")
     assert has(t["text"], "no per-sample fit")  # no raw samples stored: the panel says so
     assert has(t["legend"], "position mean ± 1σ") and has(t["legend"], "R + a·cos α + b·sin α")
-    assert has(t["legend"], "truth 37.000°")
+    assert has(t["text"], "truth 37.000°")
     assert sum("table angle α [deg]" in x for x in t["xlabel"]) == 6  # every residual strip
     assert has(t["ylabel"], "residual", "[deg/h]") and has(t["ylabel"], "residual", "[mg]")
     assert has(t["xlabel"], "heading − 36.953° [deg]", "1σ")
