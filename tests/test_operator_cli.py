@@ -143,7 +143,7 @@ BAD_INPUT = [
     (["find", "--simulate", "--heading", "400"], 2, ["--heading", "400", "between -360 and 360"]),
     (["align", "--mode", "swaying", "--simulate", "--heading", "400"], 2, ["--heading", "400"]),
     (["campaign", "--simulate", "--repeat", "1", "--heading", "400"], 2,
-     ["--headings 400", "more than a turn"]),
+     ["--heading 400", "more than a turn"]),
     (["find", "--simulate", "--positions", "x"], 2, ["--positions", "invalid int value", "--help"]),
     (["check"], 2, ["one of the arguments --config --simulate is required"]),
     ([], 2, ["COMMAND", "northfinder --help"]),

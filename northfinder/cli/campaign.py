@@ -95,12 +95,12 @@ def _new(args: argparse.Namespace) -> tuple[Path, dict]:
     if args.simulate:
         if args.reference_deg:
             raise InputError(
-                "--reference-deg: with --simulate the reference is the simulated heading; use --headings"
+                "--reference-deg: with --simulate the reference is the simulated heading; use --heading"
             )
-        refs = _angles(args.headings, "--headings") if args.headings else [37.0]
+        refs = _angles(args.headings, "--heading") if args.headings else [37.0]
     else:
         if args.headings:
-            raise InputError("--headings: only with --simulate; on a bench give --reference-deg")
+            raise InputError("--heading: only with --simulate; on a bench give --reference-deg")
         if not args.reference_deg:
             raise InputError("--reference-deg: give the reference azimuth of each fixture position (step)")
         refs = _angles(args.reference_deg, "--reference-deg")
