@@ -97,6 +97,19 @@ def test_campaign_figure_title_finds_as_ticks_and_off_scale_method_written_in():
     assert has(t["ylabel"], "[arc min]")
 
 
+def test_campaign_figure_of_a_single_find():
+    """One find: no spread yet (std None) — the figure still draws and says so."""
+    from northfinder.cli._campaign_report import draw_figure
+
+    state = json.loads((DATA / "campaign_two_finds.json").read_text())
+    state["runs"] = state["runs"][:1]
+    for s in state["statistics"].values():
+        s["std_arcmin"] = None
+    t = texts(draw_figure(state))
+    assert has(t["title"], "1 find: no spread yet")
+    assert has(t["text"], "off scale", "std —")
+
+
 def test_swaying_report_zooms_the_sway_and_names_the_residual_axes():
     from northfinder.report import draw_swaying_report
 

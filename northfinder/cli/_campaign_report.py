@@ -265,7 +265,7 @@ def _clip_outliers(ax: Any, xi: np.ndarray, names: list[str], stats: dict[str, A
             ax.text(
                 x,
                 0.0,
-                f"off scale:\nmean {s['mean_arcmin']:+.1f}′\nstd {s['std_arcmin']:.1f}′\n"
+                f"off scale:\nmean {s['mean_arcmin']:+.1f}′\nstd {_am(s['std_arcmin'], '.1f')}\n"
                 f"RMS {s['rms_arcmin']:.1f}′",
                 ha="center",
                 va="center",
