@@ -154,6 +154,10 @@ def draw_figure(state: dict[str, Any]) -> Any:
     return fig
 
 
+def _finds(n: int) -> str:
+    return f"{n} find" if n == 1 else f"{n} finds"
+
+
 def campaign_title(state: dict[str, Any]) -> str:
     """The figure's title: unit, UTC date, grade and seed (simulated) or the real bench, the plan."""
     sim = state.get("simulate") or {}
@@ -161,7 +165,7 @@ def campaign_title(state: dict[str, Any]) -> str:
     plan = state["plan"]
     src = f"simulated, grade {sim.get('grade')}, seeds from {sim.get('seed')}" if sim else "real bench"
     return (f"northfinder campaign — unit {state.get('unit') or 'not given'}, {when} UTC, {src}; "
-            f"{len(state['runs'])} finds of {plan['positions']} positions × {plan['dwell_s']:g} s, "
+            f"{_finds(len(state['runs']))} of {plan['positions']} positions × {plan['dwell_s']:g} s, "
             f"method {state['method']}")
 
 
@@ -181,11 +185,15 @@ def _finds_panel(a1: Any, state: dict[str, Any]) -> None:
     a1.axhline(0.0, color="k", lw=1, label="reference azimuth")
     m = stats[main]
     a1.axhline(m["mean_arcmin"], color="C3", ls="--", lw=1, label=f"mean {m['mean_arcmin']:+.3f}′")
-    a1.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    if len(runs) <= 20:  # every find numbered (MaxNLocator gives 0.9, 1.0, 1.1 … around a single one)
+        a1.set_xticks(x)
+    else:
+        a1.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    a1.set_xlim(0.5, len(runs) + 0.5)
     a1.set_xlabel("find (plan order)")
     a1.set_ylabel(f"{main} heading − reference [arc min] (bar: reported 1σ)")
     a1.set_title(
-        f"{len(runs)} finds, {state['plan']['positions']} positions × {state['plan']['dwell_s']:g} s"
+        f"{_finds(len(runs))}, {state['plan']['positions']} positions × {state['plan']['dwell_s']:g} s"
     )
     a1.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=3)
     a1.grid(True, alpha=0.3)
