@@ -113,9 +113,10 @@ def run_simulated() -> int:
     sim = SimulatorProcess(settings)
     endpoints = sim.start()
     try:
-        _wait_for_simulated_imu(str(endpoints["imu"]))
         pid = sim.proc.pid if sim.proc else "?"
-        print(f"note  firmware-sim started (pid {pid}, grade {settings.grade}); probing its devices")
+        print(f"note  firmware-sim started (pid {pid}, grade {settings.grade}); probing its devices",
+              flush=True)  # before the wait for its IMU, which takes a few seconds
+        _wait_for_simulated_imu(str(endpoints["imu"]))
         return check_bench(bench_config(endpoints, settings.latitude_deg))
     finally:
         print(f"note  firmware-sim stopped (exit code {sim.stop()})")
