@@ -77,7 +77,21 @@ class RunDir:
             raise InputError(
                 f"--out {p} already holds a run ({EVENTS}); give a new directory{resume_hint}"
             )
-        return cls(p)
+        rd = cls(p)
+        rd.check_writable()
+        return rd
+
+    def check_writable(self) -> None:
+        """Refuse, in one line, a directory this process cannot write into (read-only, not ours)
+        before anything is started — not a traceback at the first file written."""
+        probe = self.path / f".write-check-{os.getpid()}"
+        try:
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise InputError(
+                f"--out {self.path}: cannot write into it ({exc.strerror}); give a writable directory"
+            ) from None
 
     # -- paths -------------------------------------------------------------------------------
     def file(self, name: str) -> Path:

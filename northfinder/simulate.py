@@ -19,7 +19,11 @@ from pathlib import Path
 from typing import Any
 
 from northfinder.config import BenchConfig
-from northfinder.errors import DeviceError
+from northfinder.errors import DeviceError, InputError
+
+FIRMWARE_SIM_USAGE_EXIT = 2
+"""firmware-sim's exit code when it refuses its command line (a fault, grade or value it does not
+know), before it opens any device: northfinder passes that on as its own usage error (exit 2)."""
 
 
 def _arg(value: Any) -> str:
@@ -156,7 +160,10 @@ class SimulatorProcess:
                 chunk = os.read(fd, 4096)
                 if not chunk:
                     err = self._stderr_tail()
+                    usage = self.proc.returncode == FIRMWARE_SIM_USAGE_EXIT
                     self.stop()
+                    if usage:  # its own flag check refused a value passed on: a usage error, not a device's
+                        raise InputError(f"--simulate: {err.removeprefix('firmware-sim: ')}")
                     raise DeviceError("firmware-sim", None, f"exited before it was ready: {err}")
                 buf += chunk
         finally:

@@ -17,7 +17,9 @@ def test_align_help_describes_both_modes_and_every_simulator_flag(capsys):
     assert "Find true north with a strapdown IMU and no turntable" in text
     assert "--mode swaying the IMU alone on a swaying base" in text
     assert "--mode gnss the IMU and an NMEA GNSS receiver" in text
-    assert "--seed SEED simulator noise seed (default 1)" in text
+    assert "--seed N the simulator's random seed: the same seed draws the same sensor noise (default 1)" in (
+        text
+    )
     assert "--time-scale K simulated device time runs K× the wall clock (default: 40 swaying, 20 gnss)" in (
         text
     )

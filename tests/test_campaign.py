@@ -211,8 +211,8 @@ def _run_with_stdin(argv: list[str], cwd: Path, stdin: str) -> subprocess.Comple
     ("argv", "words"),
     [
         (["--simulate"], "--repeat"),
-        (["--simulate", "--repeat", "2", "--reference-deg", "5"], "--headings"),
-        (["--simulate", "--repeat", "2", "--headings", "north"], "--headings north"),
+        (["--simulate", "--repeat", "2", "--reference-deg", "5"], "use --heading"),
+        (["--simulate", "--repeat", "2", "--headings", "north"], "--heading north"),
         (["--config", "nosuch.toml", "--repeat", "2", "--reference-deg", "5"], "nosuch.toml"),
         (["--config", "nosuch.toml", "--repeat", "2"], "--reference-deg"),
         (["--resume", "nosuch"], "not a campaign directory"),

@@ -24,6 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
 import matplotlib  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -110,6 +111,73 @@ def timing(rng):
     return min(full), float(np.median(full)), min(solve)
 
 
+AGREEMENT_BAND = (0.95, 1.05)
+"""The shaded band of ratio_vs_limit.png: within ±5 % of 1 (Monte Carlo agrees with the limit)."""
+
+
+def plot_ratio_vs_limit(white, trials, path):
+    """ratio_vs_limit.png: per cell σ_MC/σ_limit (filled) and reported/σ_MC (open), tilt 0° and 10°
+    side by side; cells grouped by (n, T_total, ARW), latitude L within each group."""
+    groups = sorted({(r[0], r[1], r[2]) for r in white})
+    lats = sorted({r[3] for r in white})
+    fig, ax = plt.subplots(figsize=(14, 5.2))
+    for tilt, marker, dx in ((0.0, "o", -0.15), (10.0, "s", 0.15)):
+        rows = [r for r in white if r[4] == tilt]
+        slot = [groups.index((r[0], r[1], r[2])) * (len(lats) + 1) + lats.index(r[3]) for r in rows]
+        x = np.array(slot) + dx
+        ax.plot(x, [r[7] for r in rows], marker, color="C0" if tilt == 0 else "C1",
+                label=f"σ_MC / σ_limit, tilt {tilt:g}°")
+        ax.plot(x, [r[8] for r in rows], marker, mfc="none", color="C2" if tilt == 0 else "C3",
+                label=f"reported σ / σ_MC, tilt {tilt:g}°")
+    ax.axhspan(*AGREEMENT_BAND, color="g", alpha=0.1, label="within ±5 % of 1")
+    ax.axhline(1.0, color="k", lw=0.8)
+    ticks = [g * (len(lats) + 1) + k for g in range(len(groups)) for k in range(len(lats))]
+    ax.set_xticks(ticks, [f"{lat:g}" for _ in groups for lat in lats], fontsize=7)
+    for g, (n, t_total, arw) in enumerate(groups):
+        ax.text(g * (len(lats) + 1) + (len(lats) - 1) / 2, -0.07, f"n {n}\n{t_total:g} s\n{arw:g} °/√h",
+                transform=ax.get_xaxis_transform(), ha="center", va="top", fontsize=7)
+    ax.set_xlabel("latitude L [°] in each cell group (n positions, T_total, ARW)", labelpad=44)
+    ax.set_ylabel("ratio (1 = at the limit / honest σ)")
+    ax.set_title(f"Monte Carlo heading error against the white-noise limit ({trials} trials per cell)")
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return fig
+
+
+DRIFT_KEYS = (("natural", "constant"), ("natural", "linear"), ("interleaved", "constant"),
+              ("interleaved", "linear"))
+DRIFT_FIT = {"constant": "plain (constant bias)", "linear": "drift-aware (linear bias)"}
+
+
+def plot_drift(drift, trials, path):
+    """drift.png: RMS heading error per cell (categorical: markers, no lines between cells) for plain
+    and drift-aware fits in natural and interleaved order, and each cell's white-noise limit."""
+    fig, ax = plt.subplots(figsize=(15, 5.4))
+    x = np.arange(len(drift))
+    for (k, marker), dx in zip(zip(DRIFT_KEYS, ("o", "s", "^", "v"), strict=True), (-0.24, -0.08, 0.08, 0.24),
+                               strict=True):
+        ax.semilogy(x + dx, [r[5][k] for r in drift], marker, ls="none",
+                    label=f"{DRIFT_FIT[k[1]]}, {k[0]} order")
+    ax.semilogy(x, [r[4] for r in drift], "_", color="k", ms=22, mew=1.5, ls="none",
+                label="white-noise limit")
+    ax.set_xticks(x, [f"n {r[0]}\n{r[1]:g} s\n{r[2]:g} °/√h\n{r[3]:g} °/h/√h" for r in drift], fontsize=7)
+    ax.set_xlabel("cell: positions n, T_total, ARW, RRW (bias drift); L = 40°, 10 s move between positions")
+    ax.set_ylabel("RMS heading error [°] (log)")
+    ax.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.yaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.tick_params(axis="y", which="minor", labelsize=7)
+    ax.set_title(f"Bias drift: plain vs drift-aware fit ({trials} trials per cell)")
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return fig
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("outdir", type=Path)
@@ -141,22 +209,7 @@ def main() -> None:
     print(line)
     md += ["", line, ""]
 
-    fig, ax = plt.subplots(figsize=(9, 4.5))
-    for tilt, marker in ((0.0, "o"), (10.0, "s")):
-        sel = [i for i, r in enumerate(white) if r[4] == tilt]
-        ax.plot(sel, ratios[sel], marker, label=f"σ_MC/σ_limit, tilt {tilt:g}°")
-        ax.plot(sel, reps[sel], marker, mfc="none", label=f"reported/σ_MC, tilt {tilt:g}°")
-    ax.axhspan(0.95, 1.05, color="g", alpha=0.1)
-    ax.set(
-        xlabel="cell (n, T_total, ARW, L, tilt)",
-        ylabel="ratio",
-        title=f"Monte Carlo vs noise limit ({args.trials} trials/cell)",
-    )
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "ratio_vs_limit.png", dpi=120)
-    plt.close(fig)
+    plot_ratio_vs_limit(white, args.trials, out / "ratio_vs_limit.png")
 
     drift = drift_grid(rng, args.trials)
     md += ["## Bias drift (rate random walk), L = 40°, 10 s move between positions", ""]
@@ -180,31 +233,7 @@ def main() -> None:
         )
         md.append(f"| {n} | {t:g} | {arw:g} | {rrw:g} | {lim:.4f} | {vals} | {best[1]} {best[0]} |")
         print(f"drift n={n} T={t:g} ARW={arw:g} RRW={rrw:g}: limit {lim:.4f}°, {vals}")
-    fig, ax = plt.subplots(figsize=(11, 4.8))
-    x = np.arange(len(drift))
-    for k, style in zip(
-        (
-            ("natural", "constant"),
-            ("natural", "linear"),
-            ("interleaved", "constant"),
-            ("interleaved", "linear"),
-        ),
-        ("o-", "s-", "o--", "s--"),
-        strict=True,
-    ):
-        ax.semilogy(
-            x, [r[5][k] for r in drift], style, label=f"{'plain' if k[1] == 'constant' else 'aware'}, {k[0]}"
-        )
-    ax.semilogy(x, [r[4] for r in drift], "k:", label="white-noise limit")
-    ax.set_xticks(x, [f"{r[0]}/{r[1]:g}/{r[2]:g}/{r[3]:g}" for r in drift], rotation=60, fontsize=7)
-    ax.set(
-        xlabel="n / T_total / ARW / RRW", ylabel="RMS heading error [°]", title="Drift: plain vs drift-aware"
-    )
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "drift.png", dpi=120)
-    plt.close(fig)
+    plot_drift(drift, args.trials, out / "drift.png")
 
     best_full, median_full, best_solve = timing(rng)
     line = (f"10^4 trials of a 24-position find (3-axis, simulate + solve): best {best_full:.3f} s, median "

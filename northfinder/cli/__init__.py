@@ -10,14 +10,27 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from typing import NoReturn
 
 # (module, subcommand) — modules are imported lazily so that a missing optional part does not
 # break the others.
 SUBCOMMANDS = ("find", "check", "replay", "align", "campaign", "history", "plan")
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose mistakes are one line (the command, what is wrong, where the help is), exit 2 —
+    no usage block above it. Every subcommand's parser is one (add_subparsers takes the class)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="northfinder", description="Find true north with a gyro.")
+    from northfinder import __version__
+
+    parser = OneLineParser(prog="northfinder", description="Find true north with a gyro.")
+    parser.add_argument("--version", action="version", version=f"northfinder {__version__}",
+                        help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in SUBCOMMANDS:

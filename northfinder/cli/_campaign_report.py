@@ -130,19 +130,43 @@ def write_figure(state: dict[str, Any], path: str | Path) -> Path:
     """campaign.png: the main method's deviation per find with its ±1σ bar against the reference
     (0), a histogram of the deviations with the normal curve of the mean reported σ, and every
     method's mean ± std and RMS side by side."""
+    import matplotlib.pyplot as plt
+
+    fig = draw_figure(state)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def draw_figure(state: dict[str, Any]) -> Any:
+    """campaign.png's figure (write_figure)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(16, 5), gridspec_kw={"width_ratios": [2.2, 1, 1.4]})
+    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(16, 5.6), gridspec_kw={"width_ratios": [2.2, 1.2, 1.4]})
     _finds_panel(a1, state)
     _histogram_panel(a2, state)
     _methods_panel(a3, state)
+    fig.suptitle(campaign_title(state), fontsize=11)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return fig
+
+
+def _finds(n: int) -> str:
+    return f"{n} find" if n == 1 else f"{n} finds"
+
+
+def campaign_title(state: dict[str, Any]) -> str:
+    """The figure's title: unit, UTC date, grade and seed (simulated) or the real bench, the plan."""
+    sim = state.get("simulate") or {}
+    when = str(state.get("started_utc") or "")[:16].replace("T", " ")
+    plan = state["plan"]
+    src = f"simulated, grade {sim.get('grade')}, seeds from {sim.get('seed')}" if sim else "real bench"
+    return (f"northfinder campaign — unit {state.get('unit') or 'not given'}, {when} UTC, {src}; "
+            f"{_finds(len(state['runs']))} of {plan['positions']} positions × {plan['dwell_s']:g} s, "
+            f"method {state['method']}")
 
 
 def _finds_panel(a1: Any, state: dict[str, Any]) -> None:
@@ -161,34 +185,53 @@ def _finds_panel(a1: Any, state: dict[str, Any]) -> None:
     a1.axhline(0.0, color="k", lw=1, label="reference azimuth")
     m = stats[main]
     a1.axhline(m["mean_arcmin"], color="C3", ls="--", lw=1, label=f"mean {m['mean_arcmin']:+.3f}′")
-    a1.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    if len(runs) <= 20:  # every find numbered (MaxNLocator gives 0.9, 1.0, 1.1 … around a single one)
+        a1.set_xticks(x)
+    else:
+        a1.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    a1.set_xlim(0.5, len(runs) + 0.5)
     a1.set_xlabel("find (plan order)")
     a1.set_ylabel(f"{main} heading − reference [arc min] (bar: reported 1σ)")
     a1.set_title(
-        f"{len(runs)} finds, {state['plan']['positions']} positions × {state['plan']['dwell_s']:g} s"
+        f"{_finds(len(runs))}, {state['plan']['positions']} positions × {state['plan']['dwell_s']:g} s"
     )
     a1.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=3)
     a1.grid(True, alpha=0.3)
 
 
+HISTOGRAM_MIN_FINDS = 10
+"""Fewer finds than this are drawn one by one (a rug), not as a histogram of spikes."""
+
+
 def _histogram_panel(a2: Any, state: dict[str, Any]) -> None:
-    """The deviations' histogram with the normal curve of the mean reported σ."""
+    """The deviations against the normal curve of the mean reported σ: a histogram of counts (the
+    curve scaled to counts per bin) from HISTOGRAM_MIN_FINDS finds on, each find as a tick below."""
     main = state["method"]
     m = state["statistics"][main]
     dev = np.array([r["error_deg"] for r in state["runs"]]) * ARCMIN_PER_DEG
-    a2.hist(dev, bins=max(5, min(20, len(dev) // 2)), density=True, alpha=0.6, label="finds")
-    if m.get("mean_reported_sigma_arcmin"):
-        s0 = m["mean_reported_sigma_arcmin"]
-        g = np.linspace(dev.min() - 2 * s0, dev.max() + 2 * s0, 200)
-        a2.plot(
-            g,
-            np.exp(-0.5 * ((g - m["mean_arcmin"]) / s0) ** 2) / (s0 * np.sqrt(2 * np.pi)),
-            label=f"N(mean, reported σ {s0:.3f}′)",
-        )
+    s0 = m.get("mean_reported_sigma_arcmin") or 0.0
+    lo, hi = min(dev.min(), m["mean_arcmin"] - 3 * s0), max(dev.max(), m["mean_arcmin"] + 3 * s0)
+    if len(dev) >= HISTOGRAM_MIN_FINDS:
+        bins = np.linspace(lo, hi, max(5, min(20, len(dev) // 2)) + 1)
+        a2.hist(dev, bins=bins, alpha=0.6, label=f"finds ({len(dev)})")
+        scale = len(dev) * (bins[1] - bins[0])
+        a2.set_ylabel("finds per bin")
+    else:
+        scale = 1.0
+        a2.set_ylabel("density of N(mean, reported σ) [1/arc min]")
+    if s0:
+        g = np.linspace(lo, hi, 200)
+        curve = scale * np.exp(-0.5 * ((g - m["mean_arcmin"]) / s0) ** 2) / (s0 * np.sqrt(2 * np.pi))
+        a2.plot(g, curve, color="C1", label=f"N(mean, reported σ {s0:.3f}′)")
+    top = a2.get_ylim()[1]
+    a2.plot(dev, np.full(dev.shape, -0.04 * top), "|", color="C0", ms=14, mew=1.5,
+            label=f"each find ({len(dev)})" if len(dev) < HISTOGRAM_MIN_FINDS else "each find")
+    a2.set_ylim(-0.09 * top, top * 1.05)
     a2.set_xlabel(f"{main} deviation [arc min]")
-    a2.set_ylabel("density")
-    a2.set_title(f"observed std {m['std_arcmin']:.3f}′" if m.get("std_arcmin") is not None else "")
-    a2.legend(fontsize=8)
+    std = m.get("std_arcmin")
+    a2.set_title(f"observed std {std:.3f}′ vs reported σ {s0:.3f}′" if std is not None else
+                 f"1 find: no spread yet (reported σ {s0:.3f}′)")
+    a2.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, frameon=False)
     a2.grid(True, alpha=0.3)
 
 
@@ -197,12 +240,14 @@ def _methods_panel(a3: Any, state: dict[str, Any]) -> None:
     stats = state["statistics"]
     names = list(stats)
     xi = np.arange(len(names))
-    means = [stats[n]["mean_arcmin"] for n in names]
-    stds = [stats[n]["std_arcmin"] or 0.0 for n in names]
-    a3.errorbar(xi - 0.1, means, yerr=stds, fmt="o", capsize=4, label="mean ± std")
-    a3.plot(xi + 0.1, [stats[n]["rms_arcmin"] for n in names], "s", label="RMS")
+    shown = ~_clip_outliers(a3, xi, names, stats)  # the off-scale ones are written in, not drawn
+    means = np.array([stats[n]["mean_arcmin"] for n in names])
+    stds = np.array([stats[n]["std_arcmin"] or 0.0 for n in names])
+    rms = np.array([stats[n]["rms_arcmin"] for n in names])
+    a3.errorbar(xi[shown] - 0.1, means[shown], yerr=stds[shown], fmt="o", capsize=4, label="mean ± std")
+    a3.plot(xi[shown] + 0.1, rms[shown], "s", label="RMS")
     a3.axhline(0.0, color="k", lw=1)
-    _clip_outliers(a3, xi, names, stats)
+    a3.set_xlim(-0.6, len(names) - 0.25)  # room for an off-scale box at the last place
     a3.set_xticks(xi, [SHORT.get(n, n) for n in names], rotation=30, ha="right")
     a3.set_ylabel("deviation from reference [arc min]")
     a3.set_title("every method")
@@ -210,14 +255,16 @@ def _methods_panel(a3: Any, state: dict[str, Any]) -> None:
     a3.grid(True, alpha=0.3)
 
 
-def _clip_outliers(ax: Any, xi: np.ndarray, names: list[str], stats: dict[str, Any]) -> None:
+def _clip_outliers(ax: Any, xi: np.ndarray, names: list[str], stats: dict[str, Any]) -> np.ndarray:
     """Scale the method panel to the methods within 5× of the best one's extent; a method far
-    off (the uncompensated one on a tilted table) is written in as text at the panel's edge."""
+    off (the uncompensated one on a tilted table) is written in as text inside the panel at its
+    place. Returns which methods are off scale."""
     extent = [abs(stats[n]["mean_arcmin"]) + (stats[n]["std_arcmin"] or 0.0) for n in names]
     extent = [max(e, stats[n]["rms_arcmin"]) for e, n in zip(extent, names, strict=True)]
     limit = 5.0 * min(extent)
-    if max(extent) <= limit:
-        return
+    off = np.array([e > limit for e in extent])
+    if not off.any():
+        return off
     lim = 1.15 * max(e for e in extent if e <= limit)
     ax.set_ylim(-lim, lim)
     for x, n, e in zip(xi, names, extent, strict=True):
@@ -226,10 +273,11 @@ def _clip_outliers(ax: Any, xi: np.ndarray, names: list[str], stats: dict[str, A
             ax.text(
                 x,
                 0.0,
-                f"off scale:\nmean {s['mean_arcmin']:+.1f}′\nstd {s['std_arcmin']:.1f}′\n"
+                f"off scale:\nmean {s['mean_arcmin']:+.1f}′\nstd {_am(s['std_arcmin'], '.1f')}\n"
                 f"RMS {s['rms_arcmin']:.1f}′",
                 ha="center",
                 va="center",
-                fontsize=8,
+                fontsize=7,
                 bbox={"facecolor": "white", "alpha": 0.8},
             )
+    return off

@@ -10,11 +10,31 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
 from northfinder.align.limits import latitude_problem
 from northfinder.errors import InputError
+
+HEADING_RANGE_DEG = (-360.0, 360.0)
+"""What `--heading` accepts: one turn either way. A value outside (400 for 40, a typo) is refused,
+not wrapped silently."""
+
+
+def heading_deg(text: str) -> float:
+    """argparse type of `--heading DEG` (find, align): degrees from north, clockwise, within one
+    turn; the simulator wraps it to 0…360."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of degrees") from None
+    lo, hi = HEADING_RANGE_DEG
+    if not (math.isfinite(value) and lo < value < hi):
+        raise argparse.ArgumentTypeError(
+            f"{text}: give a heading between {lo:g} and {hi:g} degrees (0…360 from north, clockwise)"
+        )
+    return value
 
 
 def add_flag(parser: argparse.ArgumentParser, flag: str, **kwargs: Any) -> None:
@@ -84,9 +104,22 @@ class DeviceTimeProgress:
             console=Console(stderr=True),
             disable=not enabled,
         )
+        self.plain = enabled and not self.progress.console.is_terminal
+        """stderr is a file or a pipe: a plain line at each tenth of the window, no redrawn bar."""
+        self.duration_s = duration_s
+        self._tenths_shown = -1
+        if self.plain:
+            self.progress.disable = True
         self.task = self.progress.add_task("device time", total=duration_s, info="waiting for data")
 
     def show(self, done_s: float, info: str) -> None:
+        if self.plain:
+            tenth = int(10 * done_s / self.duration_s) if self.duration_s > 0 else 10
+            if tenth > self._tenths_shown:
+                self._tenths_shown = tenth
+                print(f"device time {done_s:.0f} of {self.duration_s:g} s: {info}", file=sys.stderr,
+                      flush=True)
+            return
         self.progress.update(self.task, completed=done_s, info=info)
 
     def __enter__(self) -> DeviceTimeProgress:

@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from northfinder.cli._tables import print_fitted
 from northfinder.constants import wrap_deg_180
 from northfinder.sequencer import Progress
 
@@ -25,7 +26,7 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
             console = Console(width=max(console.width, 132))
     console.print(_head_table(result))
     console.print(_methods_table(result))
-    console.print(_positions_table(result))
+    print_fitted(console, "positions", _POSITION_COLUMNS, position_rows(result))
     _print_faults(result.get("faults"), console)
     if run_dir is not None:
         console.print(f"run directory: {run_dir}")
@@ -79,7 +80,7 @@ def _plan_rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         how = " (rests reached the long way round, whole turns both ways)" if kind == "sweep" else ""
         last = "the rest after the return" if n.get("through_return") else "the last"
         rows.append(("plan", f"{kind}{how}: every gyro sample, {n['used_device_s']:.1f} s from the "
-                     f"first dwell to {last} (dwells alone ± {dwell['heading_std_deg']:.4f}°)"))
+                     f"first dwell to {last} (dwells alone ±{dwell['heading_std_deg']:.4f}°)"))
     elif motion is not None:
         rows.append(("plan", "positions (dwells only): the motion samples could not be used — "
                      f"{motion['reason']}"))
@@ -119,17 +120,12 @@ _POSITION_COLUMNS = ("#", "α [deg]", "gyro x [°/h]", "gyro y [°/h]", "gyro z 
                      "accel y [mg]", "accel z [mg]", "samples", "lost", "accel n", "accel lost")
 
 
-def _positions_table(result: dict[str, Any]) -> Any:
-    """One row per position: table angle, gyro and accelerometer means, sample counts."""
-    from rich.markup import escape
-    from rich.table import Table
-
-    pos = Table(title="positions")
-    for col in _POSITION_COLUMNS:
-        pos.add_column(escape(col), justify="right")
+def position_rows(result: dict[str, Any]) -> list[list[str]]:
+    """One row per position: table angle, gyro and accelerometer means, sample counts (as text)."""
+    rows = []
     for i, p in enumerate(result["positions"], 1):
         g, a = p["gyro_dph"], p["accel_g"]
-        pos.add_row(
+        rows.append([
             str(i),
             f"{p['table_angle_deg']:.3f}",
             *("—" if v is None or v != v else f"{v:+.4f}" for v in g),  # an axis the unit lacks
@@ -138,8 +134,8 @@ def _positions_table(result: dict[str, Any]) -> Any:
             str(p["lost_samples"]),
             str(p["accel_samples"]),
             str(p["accel_lost_samples"]),
-        )
-    return pos
+        ])
+    return rows
 
 
 def _invalid_lines(imu: dict[str, Any]) -> list[str]:
@@ -187,6 +183,10 @@ def _print_faults(faults: dict[str, Any] | None, console: Any) -> None:
         console.print(escape(line))
 
 
+NARROW_COLUMNS = 120
+"""A terminal narrower than this gets the compact live progress (ProgressView.narrow)."""
+
+
 class ProgressView:
     """rich live progress: position k of n, dwell in device time, live gyro mean and σ."""
 
@@ -196,19 +196,27 @@ class ProgressView:
 
         self.console = Console(stderr=True)
         self.enabled = enabled
+        self.plain = enabled and not self.console.is_terminal
+        """stderr is a file or a pipe: one plain line per event instead of a redrawn bar."""
+        self._last_dwell: Progress | None = None
+        self.narrow = self.console.width < NARROW_COLUMNS
+        """Below NARROW_COLUMNS: a short bar and the dwell's numbers without words, so that no line is cut."""
         self.progress = Progress(
             TextColumn("{task.description}"),
-            BarColumn(),
+            BarColumn(bar_width=8 if self.narrow else 40),
             TextColumn("{task.fields[info]}"),
             TimeElapsedColumn(),
             console=self.console,
             transient=False,
-            disable=not enabled,
+            disable=not enabled or self.plain,
         )
         self.pos_task = self.progress.add_task("positions", total=n, info="referencing the stage")
         self.dwell_task = self.progress.add_task("dwell", total=dwell_s, info="")
 
     def __call__(self, p: Progress) -> None:
+        if self.plain:
+            self._plain_line(p)
+            return
         if p.phase in ("move", "settle", "return", "reference"):
             what = {
                 "move": f"moving to {p.target_deg:.1f}°",
@@ -226,14 +234,39 @@ class ProgressView:
             self.progress.update(
                 self.pos_task, info=f"position {p.position} of {p.positions} at {p.target_deg:.1f}°"
             )
-            self.progress.update(
-                self.dwell_task,
-                completed=p.dwell_done_s,
-                info=f"{p.dwell_done_s:5.1f}/{p.dwell_s:g} s  gyro x {m[0]:+8.3f} y {m[1]:+8.3f} "
-                f"z {m[2]:+8.3f} °/h  σ(mean) {s[1]:.3f} °/h",
-            )
+            if self.narrow:
+                info = (f"{p.dwell_done_s:4.1f}/{p.dwell_s:g} s x {m[0]:+.2f} y {m[1]:+.2f} "
+                        f"z {m[2]:+.2f} °/h σ {s[1]:.3f}")
+            else:
+                info = (f"{p.dwell_done_s:5.1f}/{p.dwell_s:g} s  gyro x {m[0]:+8.3f} y {m[1]:+8.3f} "
+                        f"z {m[2]:+8.3f} °/h  σ(mean) {s[1]:.3f} °/h")
+            self.progress.update(self.dwell_task, completed=p.dwell_done_s, info=info)
         elif p.phase == "measured":
             self.progress.update(self.pos_task, completed=p.position)
+
+    def _plain_line(self, p: Progress) -> None:
+        """One line per event (a move, a settle, a measured position, the return), none per update."""
+        import sys
+
+        if p.phase == "dwell":
+            self._last_dwell = p
+            return
+        where = f"position {max(p.position, 1)} of {p.positions}"
+        line = {
+            "reference": "referencing the stage",
+            "move": f"{where}: moving to {p.target_deg:.1f}°",
+            "settle": f"{where}: settling",
+            "return": "returning to the start",
+        }.get(p.phase)
+        if p.phase == "measured":
+            d = self._last_dwell
+            line = f"{where}: measured"
+            if d is not None and d.position == p.position:
+                m, s = d.gyro_mean_dph, d.gyro_std_of_mean_dph
+                line += (f" at {d.target_deg:.1f}°, {d.dwell_done_s:.1f} s: gyro x {m[0]:+.3f} y {m[1]:+.3f} "
+                         f"z {m[2]:+.3f} °/h, σ(mean) {s[1]:.3f} °/h")
+        if line:
+            print(line, file=sys.stderr, flush=True)
 
     def __enter__(self) -> ProgressView:
         self.progress.start()

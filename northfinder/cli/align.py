@@ -56,15 +56,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--unit", metavar="LABEL", help="unit under test, recorded in the results history")
     add_db_flag(p)  # the results history it records into
     p.add_argument("--simulate", action="store_true", help="start firmware-sim and align on it")
-    p.add_argument("--grade", default=None,
-                   help="simulated sensor grade (nav, kvh1760, tactical-mems, consumer)")
-    p.add_argument("--seed", type=int, default=None,
-                   help="simulator noise seed (default 1): the same seed gives the same sensor noise")
+    p.add_argument("--grade", default=None, metavar="NAME",
+                   help="simulated sensor grade: nav, kvh1760, tactical-mems, consumer (default: kvh1760 "
+                   "gnss, the ship's IMU swaying)")
+    p.add_argument("--seed", type=int, default=None, metavar="N",
+                   help="the simulator's random seed: the same seed draws the same sensor noise (default 1)")
     p.add_argument("--time-scale", type=float, default=None, metavar="K",
                    help=f"simulated device time runs K× the wall clock (default: {sway_k:g} swaying, "
                    f"{gnss_k:g} gnss)")
     p.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
-                   help="pass a fault to firmware-sim (repeatable)")
+                   help="firmware-sim fault, e.g. imu-silence=10:2 (repeatable)")
     for mode in MODES:
         module = _mode_module(mode)
         if module is not None:

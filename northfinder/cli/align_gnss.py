@@ -68,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _common.add_flag(
         parser,
         "--heading",
-        type=float,
+        type=_common.heading_deg,
         default=None,
         metavar="DEG",
         help="simulated: the true heading; gnss on hardware: the heading prior (σ: --heading-std)",

@@ -49,10 +49,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     _common.add_flag(
         parser,
-        "--method",
+        "--sway-method",
+        dest="method",
         choices=METHODS,
         default=None,
-        help="swaying: cone (constrained fit, default) | cone-gls (plus a noise-weighted step) | circle "
+        help="swaying fit (not a turntable heading --method; [swaying] method): cone (constrained fit, "
+        "default) | cone-gls (plus a noise-weighted step) | circle "
         "(the paper's free space-circle fit)",
     )
     _common.add_flag(
@@ -66,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _common.add_flag(
         parser,
         "--heading",
-        type=float,
+        type=_common.heading_deg,
         default=None,
         metavar="DEG",
         help="simulated: the true (mean) heading; gnss on hardware: the heading prior (σ: --heading-std)",

@@ -10,17 +10,20 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import math
 import sys
 import time
 from pathlib import Path
 
-from northfinder.cli._common import add_db_flag
+from northfinder import config as bench
+from northfinder.cli._common import HEADING_RANGE_DEG, add_db_flag
 from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.errors import InputError
 from northfinder.runs import base as run_base
 from northfinder.runs import campaign as cp
 from northfinder.runs.find import FindRequest, run_find
+from northfinder.simulate import SimSettings
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,22 +41,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--repeat", type=int, metavar="N", help="finds per base heading")
     p.add_argument("--reference-deg", metavar="DEG[,DEG…]", help="real bench: reference azimuth of each step")
     p.add_argument(
-        "--headings", metavar="DEG[,DEG…]", help="--simulate: true heading of each step (default 37)"
+        "--heading", "--headings", dest="headings", type=str, metavar="DEG[,DEG…]",
+        help="--simulate: true heading of each step, from north clockwise (default 37)",
     )
     p.add_argument("--positions", type=int, metavar="N", help="table positions per find")
     p.add_argument("--dwell", type=float, metavar="S", help="dwell per position [device s]")
-    p.add_argument("--method", default="exact", help="method whose σ is checked (the find's --method)")
+    p.add_argument("--method", default="exact", choices=bench.METHODS,
+                   help="heading method whose σ is checked (the find's --method; default exact)")
     p.add_argument("--unit", default="", metavar="LABEL", help="unit under test (recorded in the history)")
-    p.add_argument("--out", metavar="DIR", help="campaign directory (default runs/campaign-<UTC time>)")
+    p.add_argument("--json", metavar="PATH", help="also write the campaign's JSON (campaign.json) here")
+    p.add_argument("--out", metavar="CAMPAIGN_DIR",
+                   help="campaign directory (default runs/campaign-<UTC time>)")
     add_db_flag(p)  # the results history the campaign and its finds record into
     p.add_argument("--no-report", action="store_true", help="no report.png per find (campaign.png is drawn)")
     sim = p.add_argument_group("simulation (with --simulate)")
-    sim.add_argument("--pitch", type=float, metavar="DEG")
-    sim.add_argument("--roll", type=float, metavar="DEG")
-    sim.add_argument("--latitude", type=float, metavar="DEG")
-    sim.add_argument("--grade", default="nav")
-    sim.add_argument("--seed", type=int, default=1, help="find k of the plan uses seed + k")
-    sim.add_argument("--time-scale", type=float, default=12.0, metavar="K")
+    d = SimSettings()
+    sim.add_argument("--pitch", type=float, metavar="DEG", help=f"true pitch (default {d.pitch_deg:g})")
+    sim.add_argument("--roll", type=float, metavar="DEG", help=f"true roll (default {d.roll_deg:g})")
+    sim.add_argument("--latitude", type=float, metavar="DEG",
+                     help=f"site latitude, north positive (default {d.latitude_deg:g})")
+    sim.add_argument("--grade", default="nav", metavar="NAME",
+                     help="sensor grade: nav, kvh1760, tactical-mems, consumer (default nav)")
+    sim.add_argument("--seed", type=int, default=1, metavar="N",
+                     help="the simulator's random seed; find k of the plan uses seed + k (default 1)")
+    sim.add_argument("--time-scale", type=float, default=12.0, metavar="K",
+                     help="device time runs K× the wall clock (default 12)")
+    sim.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
+                     help="firmware-sim fault for every find, e.g. imu-silence=10:2 (repeatable)")
     sim.add_argument("--sim-config", metavar="FILE_TOML", help="firmware-sim's own --config file")
     p.set_defaults(func=run)
 
@@ -65,6 +79,11 @@ def _angles(text: str | None, flag: str) -> list[float]:
         raise InputError(f"{flag} {text}: give degrees separated by commas, e.g. 0,120,240") from None
     if not out or not all(math.isfinite(v) for v in out):
         raise InputError(f"{flag} {text}: give at least one finite angle in degrees")
+    lo, hi = HEADING_RANGE_DEG
+    for v in out:
+        if not lo < v < hi:
+            raise InputError(f"{flag} {text}: {v:g} is more than a turn; give headings between {lo:g} "
+                             f"and {hi:g}")
     return out
 
 
@@ -75,12 +94,12 @@ def _new(args: argparse.Namespace) -> tuple[Path, dict]:
     if args.simulate:
         if args.reference_deg:
             raise InputError(
-                "--reference-deg: with --simulate the reference is the simulated heading; use --headings"
+                "--reference-deg: with --simulate the reference is the simulated heading; use --heading"
             )
-        refs = _angles(args.headings, "--headings") if args.headings else [37.0]
+        refs = _angles(args.headings, "--heading") if args.headings else [37.0]
     else:
         if args.headings:
-            raise InputError("--headings: only with --simulate; on a bench give --reference-deg")
+            raise InputError("--heading: only with --simulate; on a bench give --reference-deg")
         if not args.reference_deg:
             raise InputError("--reference-deg: give the reference azimuth of each fixture position (step)")
         refs = _angles(args.reference_deg, "--reference-deg")
@@ -107,6 +126,7 @@ def _new(args: argparse.Namespace) -> tuple[Path, dict]:
             "roll_deg": args.roll,
             "latitude_deg": args.latitude,
             "sim_config": str(Path(args.sim_config).resolve()) if args.sim_config else None,
+            "faults": list(args.fault),
         }
     out = Path(args.out) if args.out else run_base.default_out("campaign")
     if (out / cp.CAMPAIGN_JSON).exists():
@@ -148,6 +168,8 @@ def run(args: argparse.Namespace) -> int:
                             echo=lambda s: print(s, file=sys.stderr))
     write_figure(state, cdir / "campaign.png")
     print_campaign(state)
+    if args.json:
+        Path(args.json).write_text(json.dumps(state, indent=2) + "\n", encoding="utf-8")
     print(f"campaign directory: {cdir} (campaign.json, campaign.png)")
     return 0
 

@@ -1,4 +1,4 @@
-"""`northfinder check --config bench.toml`: probe each device and say what answered.
+"""`northfinder check --config bench.toml` (or `--simulate`): probe each device and say what answered.
 
 One line per device: the stage's version and state, the IMU's rate and format (and that data
 flows), the accelerometer's heartbeat state; one clear line for each device that did not answer.
@@ -21,7 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "check", help="probe the turntable, the IMU and the accelerometer of a bench", description=__doc__
     )
-    p.add_argument("--config", metavar="BENCH_TOML", required=True, help="bench configuration")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--config", metavar="BENCH_TOML", help="bench configuration")
+    src.add_argument("--simulate", action="store_true",
+                     help="start firmware-sim, probe its emulated devices, stop it (check without hardware)")
     p.set_defaults(func=run)
 
 
@@ -97,7 +100,46 @@ def _probe(
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = bench.load(args.config)
+    if getattr(args, "simulate", False):
+        return run_simulated()
+    return check_bench(bench.load(args.config))
+
+
+def run_simulated() -> int:
+    """`check --simulate`: firmware-sim's bench (default truth and grade) probed like real hardware."""
+    from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
+
+    settings = SimSettings()
+    sim = SimulatorProcess(settings)
+    endpoints = sim.start()
+    try:
+        pid = sim.proc.pid if sim.proc else "?"
+        print(f"note  firmware-sim started (pid {pid}, grade {settings.grade}); probing its devices",
+              flush=True)  # before the wait for its IMU, which takes a few seconds
+        _wait_for_simulated_imu(str(endpoints["imu"]))
+        return check_bench(bench_config(endpoints, settings.latitude_deg))
+    finally:
+        print(f"note  firmware-sim stopped (exit code {sim.stop()})")
+
+
+SIM_IMU_START_S = 20.0
+"""firmware-sim prints its endpoints a few seconds (3–5 s measured on a quiet host) before its IMU
+streams to the first client; check waits this long for that first frame, so that the probe's own
+2 s timeout tests the link and not the simulator's start-up."""
+
+
+def _wait_for_simulated_imu(port: str) -> None:
+    from northfinder.drivers.imu import Imu
+
+    try:
+        with Imu(port, timeout_s=SIM_IMU_START_S):
+            pass
+    except NorthfinderError:
+        pass  # the probe below says what is wrong, in its own words
+
+
+def check_bench(cfg: bench.BenchConfig) -> int:
+    """Probe each device of `cfg`; one line per device; exit 0 only if each answered."""
     ports = [p for p in (cfg.turntable.port, cfg.imu.port) if p]
     if len(set(ports)) < len(ports):
         raise ConfigError(

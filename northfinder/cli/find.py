@@ -18,7 +18,7 @@ import threading
 import time
 
 from northfinder import config as bench
-from northfinder.cli._common import add_db_flag
+from northfinder.cli._common import add_db_flag, heading_deg
 from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.runs import find as find_run
 from northfinder.simulate import SimSettings
@@ -42,15 +42,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="finish an interrupted run: re-open its devices from its saved config (a simulated run "
         "starts firmware-sim again), measure the missing positions, write the complete result",
     )
-    p.add_argument("--positions", type=int, metavar="N", help="number of table positions (≥ 3)")
+    run_d, est_d = bench.BenchConfig().run, bench.BenchConfig().estimator
+    p.add_argument("--positions", type=int, metavar="N",
+                   help=f"number of table positions, ≥ 3 (default [run] positions; {run_d.positions} "
+                   "if --simulate)")
     p.add_argument(
         "--dwell",
         type=float,
         metavar="S",
         help=f"dwell per position [device s] (default [run] dwell_s, {sim_dwell_s:g} if --simulate)",
     )
-    p.add_argument("--order", choices=bench.ORDERS, help="position order")
-    p.add_argument("--method", choices=bench.METHODS, help="heading method reported as the result")
+    p.add_argument("--order", choices=bench.ORDERS,
+                   help=f"position order (default [run] order, {run_d.order})")
+    p.add_argument("--method", choices=bench.METHODS,
+                   help=f"heading method reported as the result (default [estimator] method, {est_d.method})")
     p.add_argument(
         "--plan",
         choices=bench.RUN_PLANS,
@@ -72,17 +77,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_db_flag(p)  # the results history it records into
     sim = p.add_argument_group("simulation (with --simulate; passed on to firmware-sim)")
     d = SimSettings()
-    sim.add_argument("--heading", type=float, default=d.heading_deg, metavar="DEG", help="true heading")
-    sim.add_argument("--pitch", type=float, default=d.pitch_deg, metavar="DEG", help="true pitch")
-    sim.add_argument("--roll", type=float, default=d.roll_deg, metavar="DEG", help="true roll")
+    sim.add_argument("--heading", type=heading_deg, default=d.heading_deg, metavar="DEG",
+                     help=f"true heading, from north clockwise (default {d.heading_deg:g})")
+    sim.add_argument("--pitch", type=float, default=d.pitch_deg, metavar="DEG",
+                     help=f"true pitch (default {d.pitch_deg:g})")
+    sim.add_argument("--roll", type=float, default=d.roll_deg, metavar="DEG",
+                     help=f"true roll (default {d.roll_deg:g})")
     sim.add_argument(
         "--latitude",
         type=float,
         default=None,
         metavar="DEG",
-        help=f"site latitude (default {d.latitude_deg} simulated; overrides [site] with --config)",
+        help=f"site latitude, north positive (default {d.latitude_deg:g} simulated; overrides [site] "
+        "with --config)",
     )
-    sim.add_argument("--grade", default=None,
+    sim.add_argument("--grade", default=None, metavar="NAME",
                      help=f"sensor grade: nav, kvh1760, tactical-mems, consumer (simulated: default "
                      f"{d.grade}; with --config: the grade --target-std/--time-budget plan for)")
     sim.add_argument(
@@ -97,9 +106,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=find_run.DEFAULT_TIME_SCALE,
         metavar="K",
-        help="device time runs K times faster than the wall clock",
+        help=f"device time runs K× the wall clock (default {find_run.DEFAULT_TIME_SCALE:g})",
     )
-    sim.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE", help="firmware-sim fault")
+    sim.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
+                     help="firmware-sim fault, e.g. imu-silence=10:2 (repeatable)")
     sim.add_argument("--sim-config", metavar="FILE_TOML", help="firmware-sim's own --config file")
     p.set_defaults(func=run)
 

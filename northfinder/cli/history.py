@@ -6,6 +6,7 @@ it); `history sync` sends the rows a bench kept while the lab server was unreach
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -76,10 +77,11 @@ def run(args: argparse.Namespace) -> int:
     if args.csv:
         history.write_csv(rows, args.csv)
         print(f"{len(rows)} rows written to {args.csv}")
-    _print(rows, history.label(db))
-    print(f"database: {history.label(db)} ({total} rows in all, {len(rows)} listed)")
+    console = _print(rows, history.label(db))
+    say = functools.partial(console.print, markup=False, highlight=False)  # wrapped to the terminal
+    say(f"database: {history.label(db)} ({total} rows in all, {len(rows)} listed)")
     if waiting:
-        print(f"{waiting} rows wait in {history.outbox_path(db)}: send them with northfinder history sync")
+        say(f"{waiting} rows wait in {history.outbox_path(db)}: send them with northfinder history sync")
     if hint:
         print(f"note: {hint}", file=sys.stderr)
     return 0
@@ -95,7 +97,8 @@ def _short(path: str) -> str:
     return path if rel.startswith("..") else rel
 
 
-def _print(rows: list[dict[str, Any]], db: str) -> None:
+def _print(rows: list[dict[str, Any]], db: str) -> Any:
+    """Print the table; returns the console it used, for the lines after it."""
     from rich.console import Console
     from rich.markup import escape
     from rich.table import Table
@@ -145,4 +148,7 @@ def _print(rows: list[dict[str, Any]], db: str) -> None:
             escape(r["host"] or "—"),
             escape(_short(r["run_dir"])),
         )
-    console.print(t)
+    from northfinder.cli._tables import print_table_fitted  # split by columns at 80: no number cut
+
+    print_table_fitted(console, t)
+    return console

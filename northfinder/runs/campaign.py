@@ -97,6 +97,7 @@ def find_request(state: dict[str, Any], index: int, step: int, attempt: int, out
         if sim.get(key) is not None:
             setattr(req, name, float(sim[key]))
     req.sim_config = sim.get("sim_config") or None
+    req.fault = tuple(sim.get("faults") or ())
     return req
 
 

@@ -483,8 +483,10 @@ def measure_and_report(
     record_or_warn(rundir.path, unit=unit)  # the results history (an index of run directories)
     if report:
         from northfinder.report import write_report
+        from northfinder.runs.find_motion import report_samples
 
-        write_report(result, rundir.report_path)
+        samples = report_samples(rundir) if (result.get("motion_fit") or {}).get("available") else None
+        write_report(result, rundir.report_path, samples=samples)
     return result
 
 

@@ -90,3 +90,16 @@ def motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol: Heading
                     "used_device_s": float(np.count_nonzero(kept)) / rate_hz},
         "residual_rms_dph": {k: float(v[0]) for k, v in fit.residual_rms.items()},
     }
+
+
+def report_samples(rd: RunDir, block: Any = None) -> dict[str, Any] | None:
+    """The samples the per-sample fit used, for report.png's sample panel (northfinder.report), or
+    None when the run has none (plan positions, a resumed run, no gyro z)."""
+    events = rd.events()
+    placed, _ = motion_samples(rd, events, block)
+    start = next((e for e in events if e.get("event") == "start"), None)
+    if placed is None or start is None:
+        return None
+    alpha, omega, gyro, _ = placed
+    rate_hz = float(start["imu"]["rate_hz"])
+    return {"alpha_deg": alpha, "omega_dps": omega, "gyro_dph": gyro, "rate_hz": rate_hz}

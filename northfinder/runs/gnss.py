@@ -45,7 +45,7 @@ from northfinder.codecs.nmea import GnssFix, LocalEnu, checksum, fixes_to_arrays
 from northfinder.config import GnssAlignmentConfig
 from northfinder.constants import wrap_deg_180
 from northfinder.errors import InputError
-from northfinder.report import report_axes, save_report
+from northfinder.report import write_gnss_report as draw_write_gnss_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
 from northfinder.runs import base
 from northfinder.runs.base import TruthLog, read_truth_log
@@ -571,47 +571,8 @@ def replay_gnss_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
 # The report
 # ---------------------------------------------------------------------------------------------
 def write_gnss_report(result: dict[str, Any], hist: dict[str, Any], path: str | Path) -> Path:
-    """report.png: heading error (or heading) and σ against time, position error, lever arm."""
-    fig, axes = report_axes(3, (9, 10), sharex=True)
-    t = np.asarray(hist["t_s"])
-    ax = axes[0]
-    sig = np.asarray(hist["heading_std_deg"])
-    if "error_deg" in hist:
-        ax.plot(t, hist["error_deg"], label=f"{result['method']} error")
-        ax.plot(hist["small_t_s"], hist["small_error_deg"], label="small-angle error", alpha=0.7)
-        ax.fill_between(t, -3 * sig, 3 * sig, color="grey", alpha=0.3, label="±3σ (sin/cos)")
-        ax.set_ylabel("heading error [deg]")
-        ax.set_yscale("symlog", linthresh=1.0)
-    else:
-        ax.plot(t, hist["heading_deg"], label="heading")
-        ax.plot(t, np.asarray(hist["heading_deg"]) + 3 * sig, "k:", lw=0.8, label="±3σ")
-        ax.plot(t, np.asarray(hist["heading_deg"]) - 3 * sig, "k:", lw=0.8)
-        ax.set_ylabel("heading [deg]")
-    ax.set_title(f"align --mode gnss: {result['heading_deg']:.3f}° ± {result['heading_std_deg']:.3f}° (1σ)")
-    ax.legend(loc="upper right")
-    ax.grid(True, alpha=0.3)
-    ax = axes[1]
-    if "position_error_m" in hist:
-        ax.plot(t, hist["position_error_m"])
-        ax.set_ylabel("IMU position error [m]")
-        ax.set_yscale("log")
-    else:
-        ax.plot(t, sig)
-        ax.set_ylabel("heading 1σ [deg]")
-        ax.set_yscale("log")
-    ax.grid(True, alpha=0.3)
-    ax = axes[2]
-    la = np.asarray(hist["lever_arm_m"])
-    truth_la = (result.get("truth") or {}).get("lever_arm_m")
-    for j, name in enumerate("xyz"):
-        (line,) = ax.plot(t, la[:, j], label=f"lever arm {name}")
-        if truth_la is not None:
-            ax.axhline(truth_la[j], color=line.get_color(), ls="--", lw=0.8)
-    ax.set_ylabel("lever arm [m] (dashed: truth)")
-    ax.set_xlabel("device time since the first IMU sample [s]")
-    ax.legend(loc="upper right")
-    ax.grid(True, alpha=0.3)
-    return save_report(fig, path)
+    """report.png, drawn by the report layer (northfinder.report.write_gnss_report)."""
+    return draw_write_gnss_report(result, hist, path)
 
 
 def save_result(

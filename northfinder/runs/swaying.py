@@ -42,7 +42,7 @@ from northfinder.align.swaying import (
 from northfinder.config import SwayingConfig
 from northfinder.constants import DEG, STANDARD_GRAVITY_M_S2, wrap_deg_180
 from northfinder.errors import DeviceError, InputError
-from northfinder.report import report_axes, save_report
+from northfinder.report import write_swaying_report as draw_write_swaying_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
 from northfinder.runs import base
 from northfinder.simulate import SimulatorProcess, firmware_sim_argv
@@ -466,35 +466,9 @@ def cone_residuals(block: Any, sol: Any) -> dict[str, np.ndarray]:
     }
 
 
-def write_swaying_report(result: dict[str, Any], resid: dict[str, np.ndarray], path: str | Path) -> Path:
-    """report.png: the body rates (the sway), the cone-fit residuals, the result and its truth."""
-    fig, axes = report_axes(2, (9, 7))
-    ax = axes[0]
-    for j, name in enumerate("xyz"):
-        ax.plot(resid["t_gyro_s"], resid["gyro_dps"][:, j], lw=0.6, label=f"gyro {name}")
-    ax.set_ylabel("body rate [deg/s]")
-    ax.set_xlabel("device time since the first sample [s]")
-    title = (
-        f"align --mode swaying ({result['method']}): {result['heading_deg']:.3f}° ± "
-        f"{result['heading_std_deg']:.3f}° (1σ)"
-    )
-    if "truth" in result:
-        title += f", truth {result['truth']['heading_deg']:.3f}°, error {result['error_deg']:+.3f}°"
-    ax.set_title(title, fontsize=10)
-    ax.legend(loc="upper right", fontsize=8)
-    ax.grid(True, alpha=0.3)
-    ax = axes[1]
-    for j, name in enumerate(("x", "y", "z")):
-        ax.plot(resid["t_s"], resid["residual_ug"][:, j], marker=".", label=f"i_b0 {name}")
-    ax.set_ylabel("cone-fit residual [µg]")
-    ax.set_xlabel("window centre, device time [s]")
-    ax.set_title(
-        "smoothed specific force in i_b0 − the fitted Earth-rate cone and lever-arm sway (the fit's windows)",
-        fontsize=9,
-    )
-    ax.legend(loc="upper right", fontsize=8)
-    ax.grid(True, alpha=0.3)
-    return save_report(fig, path)
+def write_swaying_report(result: dict[str, Any], resid: dict[str, Any], path: str | Path) -> Path:
+    """report.png, drawn by the report layer (northfinder.report.write_swaying_report)."""
+    return draw_write_swaying_report(result, resid, path)
 
 
 def finish(rd: RunDir, w: Window, *, json_path: str | None = None, report: bool = True) -> dict[str, Any]:
