@@ -58,6 +58,7 @@ from northfinder.codecs.canopen import (
     PdoLayout,
     TpdoLayout,
     decode_accel_frames,
+    node_frames,
     object_role,
     samples_to_block,
 )
@@ -93,10 +94,12 @@ def decode_can_log(path: str | Path, node_id: int = 0x10, dbc_path: str | Path |
                    layout: PdoLayout | dict | None = None) -> tuple[AccelBlock, AccelStats]:
     """Decode a python-can log (.asc, .blf, …) of the node's traffic (replay): python-can reads the
     file, :func:`northfinder.codecs.canopen.decode_accel_frames` decodes it; `layout` is the
-    mapping the run read from the node (its events' `accel_config`), default the reference one."""
+    mapping the run read from the node (its events' `accel_config`), default the reference one.
+    The node's frames are taken by COB-ID (:func:`northfinder.codecs.canopen.node_frames`), whatever
+    direction the log marks them with."""
     frames = ((m.arbitration_id, bytes(m.data), m.timestamp, m.is_extended_id, m.is_remote_frame)
-              for m in can.LogReader(str(path)) if m.is_rx and not m.is_error_frame)
-    return decode_accel_frames(frames, node_id, dbc_path, layout)
+              for m in can.LogReader(str(path)) if not m.is_error_frame)
+    return decode_accel_frames(node_frames(frames, node_id, layout), node_id, dbc_path, layout)
 
 
 def layout_from_node(node: canopen.RemoteNode) -> PdoLayout:
