@@ -218,12 +218,13 @@ def test_sweep_find_turns_whole_revolutions_both_ways_and_fits_every_sample(tmp_
     assert result["motion_fit"]["samples"]["motion"] > result["motion_fit"]["samples"]["rest"]
 
 
-@pytest.mark.skipif(
-    not Path("/sys/class/net/vcan0").exists(),
-    reason="no vcan0 here (create it with: ip link add dev vcan0 type vcan && ip link set up vcan0)",
-)
+@pytest.mark.socketcan
 def test_find_with_the_accelerometer_on_socketcan_vcan0(tmp_path):
-    _in_process_run(tmp_path, "socketcan", "vcan0")
+    """On a vcan of its own (tests/socketcan_bus.py; runs in tools/vcan_guest.py's guest)."""
+    from socketcan_bus import own_vcan
+
+    with own_vcan("vcan-e2e") as channel:
+        _in_process_run(tmp_path, "socketcan", channel)
 
 
 # -- command line: Ctrl-C, user mistakes ------------------------------------------------------------
