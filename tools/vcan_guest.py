@@ -22,6 +22,7 @@ import argparse
 import os
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -43,7 +44,7 @@ def uml_modules_dir() -> Path | None:
     return versions[-1] / "kernel" if versions else None
 
 
-def init_script(out: Path, command: list[str], timeout_s: float, modules: Path) -> str:
+def init_script(out: Path, command: list[str], timeout_s: float, modules: Path, cwd: Path = REPO) -> str:
     """The guest's /sbin/init: a shell script (kernel words with spaces do not reach init intact)."""
     env = {"PATH": f"{Path(sys.executable).parent}:{GUEST_PATH}", "HOME": str(out), "LANG": "C.UTF-8",
            "PYTHONDONTWRITEBYTECODE": "1", "NORTHFINDER_VCAN_GUEST": "1", "TMPDIR": str(out / "tmp")}
@@ -58,7 +59,7 @@ ip link set lo up
 {inserts}
 mkdir -p "$TMPDIR"
 echo booted >{out}/booted
-cd {shlex.quote(str(REPO))}
+cd {shlex.quote(str(cwd))}
 start=$(date +%s.%N)
 timeout -k 5 {int(timeout_s)} {shlex.join(command)} </dev/null >{out}/command.log 2>&1
 echo $? >{out}/rc
@@ -69,7 +70,7 @@ sleep 30
 """
 
 
-def run_in_guest(command: list[str], out: Path, timeout_s: float, mem: str) -> dict:
+def run_in_guest(command: list[str], out: Path, timeout_s: float, mem: str, cwd: Path = REPO) -> dict:
     """Boot the guest, run `command` in it; its rc, output and times as the guest wrote them."""
     modules = uml_modules_dir()
     if shutil.which("linux") is None or modules is None:
@@ -77,18 +78,21 @@ def run_in_guest(command: list[str], out: Path, timeout_s: float, mem: str) -> d
                          "can-utils")
     out.mkdir(parents=True, exist_ok=True)
     init = out / "init.sh"
-    init.write_text(init_script(out, command, timeout_s, modules))
+    init.write_text(init_script(out, command, timeout_s, modules, cwd))
     init.chmod(0o755)
     t0 = time.monotonic()
     with open(out / "kernel.log", "wb") as klog:
+        # its own session: UML runs as several host processes, all ended together on a timeout
+        guest = subprocess.Popen(["linux", f"mem={mem}", "rootfstype=hostfs", "rw", f"init={init}",
+                                  "con=null", "con0=null", "quiet"], stdin=subprocess.DEVNULL, stdout=klog,
+                                 stderr=subprocess.STDOUT, start_new_session=True,
+                                 env={"PATH": os.environ.get("PATH", GUEST_PATH), "TMPDIR": "/tmp",
+                                      "HOME": str(out)})  # UML keeps its pid file under $HOME/.uml
         try:
-            subprocess.run(["linux", f"mem={mem}", "rootfstype=hostfs", "rw", f"init={init}",
-                            "con=null", "con0=null", "quiet"], stdin=subprocess.DEVNULL, stdout=klog,
-                           stderr=subprocess.STDOUT, timeout=timeout_s + BOOT_MARGIN_S, check=False,
-                           env={"PATH": os.environ.get("PATH", GUEST_PATH), "TMPDIR": "/tmp",
-                                "HOME": str(out)})  # UML keeps its pid file under $HOME/.uml
+            guest.wait(timeout=timeout_s + BOOT_MARGIN_S)
         except subprocess.TimeoutExpired:
-            pass  # judged below: no rc file
+            os.killpg(guest.pid, signal.SIGKILL)  # judged below: no rc file
+            guest.wait()
     wall_s = time.monotonic() - t0
     rc_file, times = out / "rc", out / "times"
     rc = int(rc_file.read_text()) if rc_file.exists() else None
@@ -113,14 +117,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timeout", type=float, default=600.0, metavar="S", help="the command's timeout (600)")
     p.add_argument("--mem", default="1G", help="guest memory (1G)")
     p.add_argument("--out", metavar="DIR", help="where the guest writes (default: a fresh temporary dir)")
-    p.add_argument("command", nargs="*", help="run this instead of the socketcan tests (after --)")
+    p.add_argument("command", nargs="*",
+                   help="run this (after --, in the current directory) instead of the socketcan tests")
     args = p.parse_args(argv)
     out = Path(args.out or tempfile.mkdtemp(prefix="vcan-guest-")).resolve()
     junit = out / "junit.xml"
     tests = not args.command
     command = args.command or [sys.executable, "-m", "pytest", "-m", "socketcan", "-n", "0", "-p",
                                "no:cacheprovider", "-rA", f"--junitxml={junit}", "tests"]
-    got = run_in_guest(command, out, args.timeout, args.mem)
+    got = run_in_guest(command, out, args.timeout, args.mem, Path.cwd() if args.command else REPO)
     print(got["log"], end="")
     timing = (f"guest wall {got['wall_s']:.1f} s (command {got['command_s']:.1f} s)" if got["command_s"]
               else f"guest wall {got['wall_s']:.1f} s")

@@ -148,6 +148,7 @@ class AccelStats:
     heartbeats: int = 0
     frames: int = 0
     malformed: int = 0  # this node's IDs with too few data bytes: dropped (their sample is lost)
+    kernel_drops: int = 0  # socketcan: frames the kernel dropped on the driver's full socket (SO_RXQ_OVFL)
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)

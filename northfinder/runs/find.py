@@ -613,7 +613,8 @@ def compute_result(
 
 
 _IMU_COUNTERS = ("frames", "bad_crc", "resyncs", "sequence_gaps", "lost_samples", "skipped_bytes")
-_ACCEL_COUNTERS = ("pairs", "unpaired", "counter_gaps", "lost_samples", "emcy", "heartbeats", "malformed")
+_ACCEL_COUNTERS = ("pairs", "unpaired", "counter_gaps", "lost_samples", "emcy", "heartbeats", "malformed",
+                   "kernel_drops")
 
 
 def _imu_faults(stats: list[dict[str, Any]], kept: list[dict[str, Any]]) -> dict[str, Any]:
