@@ -96,3 +96,34 @@ def test_find_simulate_can_socketcan(tmp_path):
         assert config["bench"]["accelerometer"]["channel"] == channel
         assert config["simulate"]["can"] == f"socketcan:{channel}"
         assert len(json.loads((run / RESULT).read_text())["positions"]) == 3
+
+
+def test_frames_the_kernel_drops_on_a_full_socket_are_counted():
+    """SO_RXQ_OVFL through the driver's socket wrapper: a reader that does not read while 1000 frames
+    arrive keeps what fits its (here smallest) receive buffer; received + counted drops = sent."""
+    import socket
+
+    import can
+
+    from northfinder.drivers.accelerometer import _count_kernel_drops
+
+    with own_vcan("vcan-drops") as channel:
+        reader = can.Bus(interface="socketcan", channel=channel)
+        sender = can.Bus(interface="socketcan", channel=channel)
+        try:
+            counting = _count_kernel_drops(reader)
+            assert counting is not None and counting.receive_buffer_bytes >= 4 * 1024 * 1024
+            counting.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 0)  # the kernel's minimum
+            sent = 1000
+            for k in range(sent):
+                sender.send(can.Message(arbitration_id=0x190, data=k.to_bytes(2, "little"),
+                                        is_extended_id=False))
+            received = 0
+            while reader.recv(timeout=0.5) is not None:
+                received += 1
+            assert 0 < received < sent
+            assert received + counting.kernel_drops == sent
+            print(f"\n{sent} sent, {received} received, {counting.kernel_drops} dropped by the kernel")
+        finally:
+            reader.shutdown()
+            sender.shutdown()
