@@ -36,7 +36,7 @@ FIND_TIMEOUT_S = 300.0
 
 def _bench_toml(endpoints: dict, interface: str, channel: str) -> str:
     return (f'[turntable]\nport = "{endpoints["turntable"]}"\nspeed_deg_s = 90.0\n'
-            f'[imu]\nport = "{endpoints["imu"]}"\n'
+            f'[imu]\nport = "{endpoints["imu"]}"\nrate_hz = 100\n'
             f'[accelerometer]\ninterface = "{interface}"\nchannel = "{channel}"\n'
             f'[site]\nlatitude_deg = {LATITUDE_DEG}\n')
 
