@@ -209,7 +209,7 @@ def open_bench(
             transcript=rundir.transcript_path if rundir else None)))
         tt.status()  # fail fast, naming the port, if something else than an SMC100 answers there
         imu = stack.enter_context(guard("imu", cfg.imu.port, lambda: Imu(
-            cfg.imu.port, baudrate=cfg.imu.baudrate, timeout_s=5.0,
+            cfg.imu.port, baudrate=cfg.imu.baudrate, timeout_s=10.0,  # ≥ 10 s host time: a loaded host
             raw_log=rundir.imu_raw_path if rundir else None, link_timeout_s=cfg.imu.link_timeout_s)))
         bus_options = {**(can_kwargs or {}), **a.bus_options}
         acc = stack.enter_context(guard("accelerometer", a.channel, lambda: Accelerometer(
