@@ -82,10 +82,10 @@ def run_in_guest(command: list[str], out: Path, timeout_s: float, mem: str, cwd:
     init.chmod(0o755)
     t0 = time.monotonic()
     with open(out / "kernel.log", "wb") as klog:
-        # its own session: UML runs as several host processes, all ended together on a timeout
+        # its own process group: UML runs as several host processes, all ended together on a timeout
         guest = subprocess.Popen(["linux", f"mem={mem}", "rootfstype=hostfs", "rw", f"init={init}",
                                   "con=null", "con0=null", "quiet"], stdin=subprocess.DEVNULL, stdout=klog,
-                                 stderr=subprocess.STDOUT, start_new_session=True,
+                                 stderr=subprocess.STDOUT, process_group=0,
                                  env={"PATH": os.environ.get("PATH", GUEST_PATH), "TMPDIR": "/tmp",
                                       "HOME": str(out)})  # UML keeps its pid file under $HOME/.uml
         try:
