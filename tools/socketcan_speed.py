@@ -26,11 +26,11 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(REPO), str(REPO / "tests")]
 
-from northfinder.drivers.accelerometer import RECEIVE_BUFFER_BYTES as DRIVER_BUFFER_BYTES  # noqa: E402
 from northfinder.simulate import SimSettings, SimulatorProcess  # noqa: E402
 
 FAST_STAGE_TOML = "stage_speed_dps = 90.0\nstage_accel_dps2 = 360.0\nstage_ringing_decay_s = 0.1\n"
 POSITIONS, DWELL_S = 3, 4.0
+DRIVER_BUFFER_BYTES = 0  # the driver's own receive buffer request, read when first needed
 
 
 def _children_cpu_s() -> float:
@@ -85,6 +85,8 @@ def accel_only(work: Path, scale: float, buffer_bytes: int | None, seconds: floa
     work.mkdir(parents=True, exist_ok=True)
     sim_toml = work / "sim.toml"
     sim_toml.write_text("imu_rate_hz = 1\n")  # the IMU's pty is not read here: keep it quiet
+    global DRIVER_BUFFER_BYTES
+    DRIVER_BUFFER_BYTES = DRIVER_BUFFER_BYTES or accelerometer.RECEIVE_BUFFER_BYTES
     accelerometer.RECEIVE_BUFFER_BYTES = buffer_bytes or DRIVER_BUFFER_BYTES
     with own_vcan("vcan-speed") as channel, SimulatorProcess(SimSettings(
             time_scale=scale, seed=21, config=str(sim_toml), can=f"socketcan:{channel}")), \
