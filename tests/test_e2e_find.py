@@ -2,7 +2,8 @@
 
 firmware_sim runs in a separate process (real ptys for the stage and the IMU, its slcan adapter on a
 pty for the CAN accelerometer, python-can's own `slcan` client on our side); one variant runs it
-in-process with the accelerometer on python-can's `virtual` bus; the socketcan variant needs vcan0.
+in-process with the accelerometer on python-can's `virtual` bus; the socketcan variant runs on a
+vcan of its own in the User-Mode Linux guest (tools/vcan_guest.py).
 Device time runs TIME_SCALE× the wall clock and the sim's stage turns at 90°/s with its ringing
 decaying in 0.1 s (a config file: a stiffer, faster stage), so a run of 8 positions × DWELL_S takes
 a few seconds; the sensors' physics and noise are the presets'.
