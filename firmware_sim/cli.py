@@ -7,6 +7,7 @@ lean so the endpoints appear quickly; the physics and devices load in `Simulator
     firmware-sim                                   # the bench: turntable, IMU, CAN accelerometer
     firmware-sim --scenario ship --sway "roll=10:8,pitch=5:6,yaw=3:10,heave=0.5:7" --lever-arm 1,2,1.5
     firmware-sim --scenario vehicle --lever-arm 0.5,1.5,1.2 --truth-log truth.jsonl
+    firmware-sim --can socketcan:vcan0             # the CAN node on a kernel CAN interface
     firmware-sim --imu-axes y --stage-speed 1 --link-latency 20,5 --link-hold 5,200   # real units
 
 `--lever-arm` is the IMU's (from the centre of rotation) for the bench and the ship, the GNSS
@@ -25,7 +26,14 @@ import threading
 from typing import Any
 
 from firmware_sim import __version__
-from firmware_sim.config import SWAY_AXES, ConfigError, SimConfig, config_from_mapping, load_toml
+from firmware_sim.config import (
+    CAN_INTERFACES,
+    SWAY_AXES,
+    ConfigError,
+    SimConfig,
+    config_from_mapping,
+    load_toml,
+)
 
 SWAY_EXAMPLE = "roll=10:8,pitch=5:6,yaw=3:10,heave=0.5:7"
 
@@ -116,6 +124,17 @@ def parse_link_latency(text: str) -> dict[str, float]:
     return out
 
 
+def parse_can(text: str) -> dict[str, str]:
+    """`"socketcan:vcan0"` → can_interface socketcan, can_channel vcan0; `"slcan"` → the emulated adapter."""
+    interface, _, channel = (part.strip() for part in text.strip().partition(":"))
+    interface = interface.lower()
+    if interface not in CAN_INTERFACES or (interface != "slcan" and not channel):
+        raise ConfigError(f"--can {text}: give INTERFACE[:CHANNEL] with INTERFACE one of "
+                          f"{', '.join(CAN_INTERFACES)} (a channel for virtual and socketcan), "
+                          "e.g. --can socketcan:vcan0")
+    return {"can_interface": interface, **({"can_channel": channel} if channel else {})}
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="firmware-sim",
@@ -143,6 +162,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "1,2,1.5), the GNSS antenna's from the IMU (vehicle; default 0.5,1.5,1.2)")
     p.add_argument("--imu-rate", type=int, metavar="HZ", help="IMU data rate (default 1000; vehicle 250)")
     p.add_argument("--accel-rate", type=float, metavar="HZ", help="CAN accelerometer rate, 1…1000 (100)")
+    p.add_argument("--can", metavar="INTERFACE[:CHANNEL]",
+                   help="where the CAN node sits: slcan (behind the emulated USB-CAN adapter on a pty, "
+                   "default), socketcan:vcan0 (a kernel CAN interface), virtual:bench "
+                   "(python-can, in-process)")
     p.add_argument("--accel-mapping", choices=("default", "swapped"),
                    help="CAN accelerometer TPDO mapping (swapped: axes reordered, 0.1 µg scale)")
     p.add_argument("--imu-axes", metavar="SPEC",
@@ -194,6 +217,8 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
         value = getattr(args, flag)
         if value is not None:
             data[key] = value
+    if args.can is not None:
+        data.update(parse_can(args.can))
     if args.sway is not None:
         data["sway"] = parse_sway(args.sway)
     if args.link_hold is not None:

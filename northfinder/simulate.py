@@ -60,6 +60,8 @@ class SimSettings:
     time_scale: float = 20.0
     faults: Sequence[str] = field(default_factory=tuple)
     config: str | None = None
+    can: str | None = None
+    """Where firmware-sim puts its CAN node, INTERFACE[:CHANNEL] (None: its slcan adapter on a pty)."""
 
     def argv(self) -> list[str]:
         """The firmware-sim command line for these settings."""
@@ -73,6 +75,7 @@ class SimSettings:
                 "--seed": int(self.seed),
                 "--time-scale": float(self.time_scale),
                 "--config": self.config or None,
+                "--can": self.can or None,
             },
             self.faults,
         )

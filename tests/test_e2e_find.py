@@ -2,7 +2,8 @@
 
 firmware_sim runs in a separate process (real ptys for the stage and the IMU, its slcan adapter on a
 pty for the CAN accelerometer, python-can's own `slcan` client on our side); one variant runs it
-in-process with the accelerometer on python-can's `virtual` bus; the socketcan variant needs vcan0.
+in-process with the accelerometer on python-can's `virtual` bus; the socketcan variant runs on a
+vcan of its own in the User-Mode Linux guest (tools/vcan_guest.py).
 Device time runs TIME_SCALE× the wall clock and the sim's stage turns at 90°/s with its ringing
 decaying in 0.1 s (a config file: a stiffer, faster stage), so a run of 8 positions × DWELL_S takes
 a few seconds; the sensors' physics and noise are the presets'.
@@ -218,12 +219,13 @@ def test_sweep_find_turns_whole_revolutions_both_ways_and_fits_every_sample(tmp_
     assert result["motion_fit"]["samples"]["motion"] > result["motion_fit"]["samples"]["rest"]
 
 
-@pytest.mark.skipif(
-    not Path("/sys/class/net/vcan0").exists(),
-    reason="no vcan0 here (create it with: ip link add dev vcan0 type vcan && ip link set up vcan0)",
-)
+@pytest.mark.socketcan
 def test_find_with_the_accelerometer_on_socketcan_vcan0(tmp_path):
-    _in_process_run(tmp_path, "socketcan", "vcan0")
+    """On a vcan of its own (tests/socketcan_bus.py; runs in tools/vcan_guest.py's guest)."""
+    from socketcan_bus import own_vcan
+
+    with own_vcan("vcan-e2e") as channel:
+        _in_process_run(tmp_path, "socketcan", channel)
 
 
 # -- command line: Ctrl-C, user mistakes ------------------------------------------------------------

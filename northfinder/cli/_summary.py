@@ -163,6 +163,9 @@ def _print_faults(faults: dict[str, Any] | None, console: Any) -> None:
         f"accelerometer: {acc['lost_samples']} samples lost ({acc['lost_in_dwells']} inside kept dwells), "
         f"{acc['emcy']} EMCY, heartbeats {acc['heartbeats']}",
     ]
+    if acc.get("kernel_drops"):
+        lines.append(f"  {acc['kernel_drops']} CAN frames dropped by the kernel: the socket's receive buffer "
+                     "was full (the reader fell behind the bus)")
     for m in acc["emergencies"]:
         lines.append(f"  EMCY 0x{m['code']:04X} register 0x{m['register']:02X}: {m['meaning']}")
     if acc["heartbeat_lost_positions"]:

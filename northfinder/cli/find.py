@@ -111,6 +111,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     sim.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
                      help="firmware-sim fault, e.g. imu-silence=10:2 (repeatable)")
     sim.add_argument("--sim-config", metavar="FILE_TOML", help="firmware-sim's own --config file")
+    sim.add_argument("--can", metavar="INTERFACE[:CHANNEL]",
+                     help="firmware-sim's CAN node on this bus, e.g. socketcan:vcan0 (default: its slcan "
+                     "adapter on a pty)")
     p.set_defaults(func=run)
 
 

@@ -39,6 +39,7 @@ __all__ = [
     "TpdoLayout",
     "default_layout",
     "load_database",
+    "node_frames",
     "object_role",
 ]
 
@@ -147,6 +148,7 @@ class AccelStats:
     heartbeats: int = 0
     frames: int = 0
     malformed: int = 0  # this node's IDs with too few data bytes: dropped (their sample is lost)
+    kernel_drops: int = 0  # socketcan: frames the kernel dropped on the driver's full socket (SO_RXQ_OVFL)
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -460,6 +462,23 @@ def samples_to_block(raw: RawAccelSamples, layout: PdoLayout) -> AccelBlock:
                    else np.full(len(counter), np.nan))
     return AccelBlock(counter=counter, accel_g=accel, temperature_c=temperature,
                       status=raw.status.astype(np.uint8), lost_samples=lost)
+
+
+def node_frames(frames: Iterable[tuple[int, bytes, float, bool, bool]], node_id: int = DBC_NODE_ID,
+                layout: PdoLayout | dict | None = None) -> Iterable[tuple[int, bytes, float, bool, bool]]:
+    """The node's own frames among `frames` `(can_id, data, timestamp, is_extended, is_remote)`: its
+    TPDOs by the COB-IDs of `layout` (the mapping read from the node; default the reference one),
+    its heartbeat (0x700 + ID) and EMCY (0x080 + ID), 11-bit data frames only.
+
+    Decided by COB-ID alone, never by a log's direction flag: socketcan marks a frame another process
+    on this host sent (firmware-sim on vcan0, any software node beside the bench) as not received,
+    a kernel slcan or python-can's slcan marks it received; the same traffic must decode the same.
+    """
+    if isinstance(layout, dict):
+        layout = PdoLayout.from_dict(layout)
+    layout = layout or default_layout(node_id)
+    wanted = {t.cob_id for t in layout.tpdos} | {HEARTBEAT_BASE + node_id, EMCY_BASE + node_id}
+    return (f for f in frames if f[0] in wanted and not f[3] and not f[4])
 
 
 def decode_accel_frames(frames: Iterable[tuple[int, bytes, float, bool, bool]], node_id: int = 0x10,

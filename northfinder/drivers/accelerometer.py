@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import copy
 import logging
+import socket
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -58,6 +60,7 @@ from northfinder.codecs.canopen import (
     PdoLayout,
     TpdoLayout,
     decode_accel_frames,
+    node_frames,
     object_role,
     samples_to_block,
 )
@@ -93,10 +96,66 @@ def decode_can_log(path: str | Path, node_id: int = 0x10, dbc_path: str | Path |
                    layout: PdoLayout | dict | None = None) -> tuple[AccelBlock, AccelStats]:
     """Decode a python-can log (.asc, .blf, …) of the node's traffic (replay): python-can reads the
     file, :func:`northfinder.codecs.canopen.decode_accel_frames` decodes it; `layout` is the
-    mapping the run read from the node (its events' `accel_config`), default the reference one."""
+    mapping the run read from the node (its events' `accel_config`), default the reference one.
+    The node's frames are taken by COB-ID (:func:`northfinder.codecs.canopen.node_frames`), whatever
+    direction the log marks them with."""
     frames = ((m.arbitration_id, bytes(m.data), m.timestamp, m.is_extended_id, m.is_remote_frame)
-              for m in can.LogReader(str(path)) if m.is_rx and not m.is_error_frame)
-    return decode_accel_frames(frames, node_id, dbc_path, layout)
+              for m in can.LogReader(str(path)) if not m.is_error_frame)
+    return decode_accel_frames(node_frames(frames, node_id, layout), node_id, dbc_path, layout)
+
+
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)  # Linux socket(7); Python's socket module lacks it
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
+RECEIVE_BUFFER_BYTES = 4 * 1024 * 1024
+"""The socketcan receive buffer asked for: the default (net.core.rmem_default, 208 KiB) holds ~300
+frames, 0.15 s of the node at 100 Hz × 10 time scale; 4 MiB holds seconds of it. Above
+net.core.rmem_max only with CAP_NET_ADMIN (SO_RCVBUFFORCE); otherwise the kernel caps it."""
+
+
+class _DropCountingSocket:
+    """A socketcan socket whose `recvmsg` also takes the kernel's drop counter (SO_RXQ_OVFL: frames
+    dropped because the socket's receive buffer was full) out of the ancillary data, leaving python-can
+    the timestamp it asked for. Everything else goes to the socket as it is."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self._sock = sock
+        self.kernel_drops = 0
+        sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, RECEIVE_BUFFER_BYTES)
+        except OSError:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
+        self.receive_buffer_bytes = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._sock, name)
+
+    def fileno(self) -> int:
+        return self._sock.fileno()
+
+    def recvmsg(self, bufsize: int, ancbufsize: int = 0, flags: int = 0) -> tuple:
+        data, ancillary, msg_flags, address = self._sock.recvmsg(bufsize, ancbufsize + socket.CMSG_SPACE(4),
+                                                                 flags)
+        kept = []
+        for level, kind, payload in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL:
+                self.kernel_drops = struct.unpack_from("=I", payload)[0]  # the socket's total so far
+            else:
+                kept.append((level, kind, payload))
+        return data, kept, msg_flags, address
+
+
+def _count_kernel_drops(bus: can.BusABC) -> _DropCountingSocket | None:
+    """On python-can's socketcan bus: a bigger receive buffer and the kernel's drop counter."""
+    sock = getattr(bus, "socket", None)
+    if type(bus).__name__ != "SocketcanBus" or not isinstance(sock, socket.socket):
+        return None
+    try:
+        counting = _DropCountingSocket(sock)
+    except OSError:
+        return None
+    bus.socket = counting
+    return counting
 
 
 def layout_from_node(node: canopen.RemoteNode) -> PdoLayout:
@@ -195,6 +254,7 @@ class Accelerometer:
                     "interface, channel and bitrate in the bench config"
                 ) from None
         self._bus = bus
+        self._drops = _count_kernel_drops(bus)
         self._lock = threading.Condition()
         self._decoder = AccelFrameDecoder(self.codec)
         self._error: BaseException | None = None
@@ -250,6 +310,8 @@ class Accelerometer:
     def _on_frame(self, msg: can.Message) -> None:
         with self._lock:
             self._log(msg)
+            if self._drops is not None:
+                self._decoder.stats.kernel_drops = self._drops.kernel_drops
             if not msg.is_error_frame:
                 can_id, data = msg.arbitration_id, msg.data
                 if can_id == 0x700 + self.node_id and len(data) < 1 or can_id == 0x080 + self.node_id and (

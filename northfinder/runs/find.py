@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from northfinder import config as bench
-from northfinder.codecs.canopen import decode_accel_frames
+from northfinder.codecs.canopen import decode_accel_frames, node_frames
 from northfinder.codecs.kvh import decode_imu_stream
 from northfinder.constants import wrap_deg_180
 from northfinder.errors import InputError, RunAborted, RunDamaged
@@ -82,6 +82,8 @@ class FindRequest:
     plan: str | None = None
     target_std: float | None = None
     time_budget: float | None = None
+    can: str | None = None
+    """--simulate: firmware-sim's CAN node on INTERFACE[:CHANNEL], e.g. socketcan:vcan0."""
 
 
 def check_request(req: FindRequest) -> None:
@@ -163,6 +165,7 @@ def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSetting
             time_scale=req.time_scale,
             faults=tuple(req.fault),
             config=str(write_sim_config(rundir, sim_text)),
+            can=req.can,
         )
     return cfg, rundir, settings, prediction
 
@@ -206,7 +209,7 @@ def open_bench(
             transcript=rundir.transcript_path if rundir else None)))
         tt.status()  # fail fast, naming the port, if something else than an SMC100 answers there
         imu = stack.enter_context(guard("imu", cfg.imu.port, lambda: Imu(
-            cfg.imu.port, baudrate=cfg.imu.baudrate, timeout_s=5.0,
+            cfg.imu.port, baudrate=cfg.imu.baudrate, timeout_s=10.0,  # ≥ 10 s host time: a loaded host
             raw_log=rundir.imu_raw_path if rundir else None, link_timeout_s=cfg.imu.link_timeout_s)))
         bus_options = {**(can_kwargs or {}), **a.bus_options}
         acc = stack.enter_context(guard("accelerometer", a.channel, lambda: Accelerometer(
@@ -248,7 +251,8 @@ def _sim_info(settings: SimSettings | None) -> dict[str, Any] | None:
     if settings is None:
         return None
     return {**settings.truth(), "grade": settings.grade, "seed": settings.seed,
-            "time_scale": settings.time_scale, "faults": list(settings.faults)}
+            "time_scale": settings.time_scale, "faults": list(settings.faults),
+            **({"can": settings.can} if settings.can else {})}
 
 
 def _configure(cfg: bench.BenchConfig, imu: Any, acc: Any, rundir: RunDir) -> dict[str, Any]:
@@ -448,6 +452,7 @@ def prepare_resume(run_dir: str | Path, time_scale: float, faults: Sequence[str]
             time_scale=float(time_scale),
             faults=tuple(faults) if faults else tuple(sim.get("faults", ())),
             config=str(sim_toml) if sim_toml.exists() else None,
+            can=sim.get("can"),
         )
     else:
         bench.require_ports(cfg)
@@ -610,7 +615,8 @@ def compute_result(
 
 
 _IMU_COUNTERS = ("frames", "bad_crc", "resyncs", "sequence_gaps", "lost_samples", "skipped_bytes")
-_ACCEL_COUNTERS = ("pairs", "unpaired", "counter_gaps", "lost_samples", "emcy", "heartbeats", "malformed")
+_ACCEL_COUNTERS = ("pairs", "unpaired", "counter_gaps", "lost_samples", "emcy", "heartbeats", "malformed",
+                   "kernel_drops")
 
 
 def _imu_faults(stats: list[dict[str, Any]], kept: list[dict[str, Any]]) -> dict[str, Any]:
@@ -715,10 +721,10 @@ def _decode_session(rd: RunDir, session: int, start: dict[str, Any]) -> tuple[An
     can_path = rd.file(session_file(CAN_LOG, session))
     accel_block = None
     if can_path.exists():
+        node_id, layout = start["accelerometer"]["node_id"], start["accelerometer"].get("layout")
         frames = ((m.arbitration_id, bytes(m.data), m.timestamp, m.is_extended_id, m.is_remote_frame)
-                  for m in can.LogReader(str(can_path)) if m.is_rx and not m.is_error_frame)
-        accel_block, _ = decode_accel_frames(frames, node_id=start["accelerometer"]["node_id"],
-                                             layout=start["accelerometer"].get("layout"))
+                  for m in can.LogReader(str(can_path)) if not m.is_error_frame)  # by COB-ID, not is_rx
+        accel_block, _ = decode_accel_frames(node_frames(frames, node_id, layout), node_id, layout=layout)
     return block, accel_block
 
 
