@@ -289,17 +289,25 @@ def test_kvh_configuration_mode(bench):
         first = _messages(_read_exact(port, 36 * 200))
         assert first["crc_ok"][:100].all() and (first["status"][:100] == 0x77).all()
         port.write(b"=CONFIG,1\n")
+        port.timeout = 5.0
+        assert port.read_until(b"CONFIG,1\r\n").endswith(b"CONFIG,1\r\n")  # the echo (manual §7)
         _read_quiet(port)  # what was already on its way
         port.write(b"?DR\n")
-        port.timeout = 5.0
-        assert port.read_until(b"DR,1000\n").endswith(b"DR,1000\n")
+        assert port.read_until(b"DR,1000\r\n").endswith(b"DR,1000\r\n")
         assert _read_quiet(port, 0.3) == b""  # 3 s of device time: configuration mode sends no data
-        for line in (b"=DR,100\n", b"=ROTFMT,RATE\n", b"=ROTUNITS,DEG\n", b"=DR,333\n", b"=ROTFMT,FOO\n"):
+        for line in (b"=DR,100\n", b"=ROTFMT,RATE\n", b"=ROTUNITS,DEG\n", b"=DR,333\n", b"=ROTFMT,FOO\n",
+                     b"=FOO\n"):
             port.write(line)
         port.write(b"?DR\n?ROTFMT\n?ROTUNITS\n")
         port.timeout = 2.0
-        assert [port.readline() for _ in range(3)] == [b"DR,100\n", b"ROTFMT,RATE\n", b"ROTUNITS,DEG\n"]
+        assert [port.readline() for _ in range(9)] == [
+            b"DR,100\r\n", b"ROTFMT,RATE\r\n", b"ROTUNITS,DEG\r\n",  # echoes
+            b"USAGE,=DR,<1|5|10|25|50|100|250|500|750|1000|3600|5000>\r\n",  # bad parameters: the prompt
+            b"USAGE,=ROTFMT,<DELTA|RATE>\r\n",
+            b"INVALID,=FOO\r\n",  # unknown input: INVALID + the echo
+            b"DR,100\r\n", b"ROTFMT,RATE\r\n", b"ROTUNITS,DEG\r\n"]
         port.write(b"=CONFIG,0\n")
+        assert _read_exact(port, 10) == b"CONFIG,0\r\n"
         msgs = kvh.unpack_messages(_read_exact(port, 36 * 50))  # data again, from a message boundary
         assert msgs["crc_ok"].all()
         assert (msgs["status"][:2] == 0).all() and (msgs["status"][2:] == 0x77).all()
@@ -330,6 +338,9 @@ def test_kvh_gyro_only_variants(variant, status):
         assert (msgs["gyro"][:, [0, 2]] == 0.0).all() and (msgs["gyro"][:, 1] != 0.0).all()
 
 
+POWER_UP_BIT = bytes.fromhex("FE 81 00 AA 7F 7F 7F 7F 7F 7F 23")  # the manual's healthy BIT message
+
+
 def _drive(faults, splits, n_samples=3000, seed=11):
     """The IMU alone, driven at chosen device times; a pyserial client reads everything."""
     sim = Simulator(SimConfig(seed=seed, accel_enabled=False, faults=faults))
@@ -345,7 +356,8 @@ def _drive(faults, splits, n_samples=3000, seed=11):
         while chunk := client.read(65536):  # what is still in flight through the pty
             out += chunk
         client.close()
-        return bytes(out), sim.imu
+        assert out.startswith(POWER_UP_BIT)  # a client there at power-on hears the BIT message first
+        return bytes(out[len(POWER_UP_BIT):]), sim.imu
     finally:
         sim.stop()
 
