@@ -37,6 +37,11 @@ __all__ = [
     "encode_frame",
     "encode_frames",
     "encode_query",
+    "encode_bit_message",
+    "find_bit_messages",
+    "find_echo",
+    "find_refusal",
+    "BitMessage",
     "encode_set",
     "find_config_replies",
     "gyro_scale_to_rad_s",
@@ -234,6 +239,78 @@ def find_config_reply(data: bytes, key: str) -> tuple[str, int] | None:
 def find_config_replies(data: bytes) -> list[tuple[str, str, int]]:
     """Every ``KEY,VALUE\\n`` reply in a byte buffer → (key, value, end offset)."""
     return [(m.group(1).decode(), m.group(2).decode(), m.end()) for m in _REPLY_RE.finditer(data)]
+
+
+def find_echo(data: bytes, key: str, value: object) -> int | None:
+    """End offset of the unit's echo of ``=KEY,VALUE`` (manual §7: the command without its '=',
+    in upper case: ``KEY,VALUE``) in a byte buffer, or None. The echo may follow binary data
+    directly (Normal Mode), so the line is matched by its exact text, not by a key pattern."""
+    line = f"{key},{value}".upper().encode("ascii")
+    m = re.search(re.escape(line) + rb"\r?\n", data)
+    return None if m is None else m.end()
+
+
+_REFUSAL_RE = re.compile(rb"((?:INVALID|USAGE),[ -~]*)\r?\n")
+
+
+def find_refusal(data: bytes) -> tuple[str, int] | None:
+    """The first refusal in a byte buffer → (its text, end offset), or None. Manual §7, in
+    Configuration Mode: unknown or unaccepted input is answered ``INVALID,`` + the line received;
+    bad parameters to a known keyword the usage prompt (``USAGE,`` + how to write it)."""
+    m = _REFUSAL_RE.search(data)
+    return None if m is None else (m.group(1).decode("ascii"), m.end())
+
+
+BIT_HEADER = b"\xfe\x81\x00\xaa"
+"""Extended BIT message (manual §3.4, §5.3): this header, 6 data bytes, a checksum."""
+BIT2_HEADER = b"\xfe\x81\x00\xab"
+"""Extended BIT, 2 (``?BIT,2``): this header, 8 data bytes, a checksum."""
+BIT_HEALTHY = 0x7F
+"""A healthy unit's BIT data byte ("FE 81 00 AA 7F 7F 7F 7F 7F 7F 23" is normal status)."""
+
+
+@dataclass(frozen=True)
+class BitMessage:
+    """One BIT message from the stream: its data bytes and whether its checksum (the sum of every
+    byte before it, header included, modulo 256) holds."""
+
+    data: bytes
+    checksum_ok: bool
+    extended2: bool = False
+
+    @property
+    def healthy(self) -> bool:
+        """Checksum good and every data byte 0x7F (all tests passed)."""
+        return self.checksum_ok and all(b == BIT_HEALTHY for b in self.data)
+
+    def describe(self) -> str:
+        """``BIT 7F 7F 7F 7F 7F 7F: all passed`` or what failed."""
+        text = " ".join(f"{b:02X}" for b in self.data)
+        if not self.checksum_ok:
+            return f"BIT {text}: checksum wrong (garbled on the line?)"
+        if self.healthy:
+            return f"BIT {text}: all passed"
+        failed = [f"byte {i} bits {BIT_HEALTHY & ~b:#04x}"
+                  for i, b in enumerate(self.data) if b != BIT_HEALTHY]
+        return f"BIT {text}: not passed ({', '.join(failed)}) — see the manual's BIT tables"
+
+
+def encode_bit_message(data: bytes = bytes([BIT_HEALTHY] * 6), extended2: bool = False) -> bytes:
+    """A BIT message as the unit sends it (tests)."""
+    body = (BIT2_HEADER if extended2 else BIT_HEADER) + bytes(data)
+    return body + bytes([sum(body) & 0xFF])
+
+
+def find_bit_messages(data: bytes) -> list[tuple[BitMessage, int]]:
+    """Every complete BIT message in a byte buffer → (message, start offset)."""
+    out = []
+    for header, size, ext in ((BIT_HEADER, 6, False), (BIT2_HEADER, 8, True)):
+        p = data.find(header)
+        while p >= 0 and p + 4 + size + 1 <= len(data):
+            body = data[p:p + 4 + size]
+            out.append((BitMessage(body[4:], (sum(body) & 0xFF) == data[p + 4 + size], ext), p))
+            p = data.find(header, p + 1)
+    return sorted(out, key=lambda item: item[1])
 
 
 # --------------------------------------------------------------------------------------------
