@@ -1,5 +1,13 @@
 """KVH 1750/1760/1775 IMU speaking "format A" (docs/PROTOCOLS.md §2) on a pty.
 
+Reference: the KVH 1775 IMU technical manual / ICD (56-0298). Data messages: Tables 5-1, 5-2
+(format A), 5-8 (status), 5-9 (CRC). The dialogue: §7 "Commands and Queries" (echo without the
+`=`, `KEY,value` replies, `INVALID,` + the line in Configuration Mode, a usage prompt for bad
+parameters, nothing answered in Normal Mode but `=CONFIG` and `?BIT`), §8 (one entry per command:
+the COMMANDS table below), §3.3 (Normal vs Configuration Mode), §3.4 and §5.3 (the BIT message,
+sent at power-up before the data and on `?BIT`). What firmware-sim answers to each command
+against what the manual says: docs/conformance/kvh.md (tools/conformance_kvh.py).
+
 The codec is written here from the protocol sheet: messages are packed many at a time into a
 numpy structured array (big-endian fields), and their CRC-32/MPEG-2 is computed for all of them
 at once with a lookup table (one table step per two byte positions, vectorized over the

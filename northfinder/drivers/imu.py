@@ -1,5 +1,12 @@
 """KVH 1750/1760/1775 IMU driver, format A (docs/PROTOCOLS.md §2).
 
+The dialogue follows the KVH 1775 technical manual §7: every configuration command is confirmed
+by its echo (``=DR,100`` → ``DR,100``), and an ``INVALID,…`` or ``USAGE,…`` answer is a
+DeviceError naming the command the unit refused. Echoes, query replies and BIT messages (§5.3)
+that arrive between data messages are skipped by the decoder like any non-frame bytes (no sample
+is counted lost for them); BIT messages are kept (:meth:`Imu.built_in_test`: the power-up one, or
+``?BIT``, which the manual allows in Normal Mode, §8.5).
+
 A background thread reads whatever the port delivers, writes it to the raw log as it arrives
 (through :class:`northfinder.transport.SerialTransport`, the one logging place), and feeds it to
 :class:`northfinder.codecs.kvh.KvhDecoder`, which finds headers, checks CRCs, resyncs, decodes
