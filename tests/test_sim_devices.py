@@ -338,9 +338,6 @@ def test_kvh_gyro_only_variants(variant, status):
         assert (msgs["gyro"][:, [0, 2]] == 0.0).all() and (msgs["gyro"][:, 1] != 0.0).all()
 
 
-POWER_UP_BIT = bytes.fromhex("FE 81 00 AA 7F 7F 7F 7F 7F 7F 23")  # the manual's healthy BIT message
-
-
 def _drive(faults, splits, n_samples=3000, seed=11):
     """The IMU alone, driven at chosen device times; a pyserial client reads everything."""
     sim = Simulator(SimConfig(seed=seed, accel_enabled=False, faults=faults))
@@ -356,8 +353,7 @@ def _drive(faults, splits, n_samples=3000, seed=11):
         while chunk := client.read(65536):  # what is still in flight through the pty
             out += chunk
         client.close()
-        assert out.startswith(POWER_UP_BIT)  # a client there at power-on hears the BIT message first
-        return bytes(out[len(POWER_UP_BIT):]), sim.imu
+        return bytes(out), sim.imu
     finally:
         sim.stop()
 
@@ -668,3 +664,28 @@ def test_loop_does_not_spin_on_ports_without_a_client():
         sim.stop()
     # one tick per select timeout (a few ms) when idle; a spinning loop does tens of thousands
     assert rate < 2000, f"{rate:.0f} loop ticks per second with no client"
+
+
+def test_kvh_power_up_bit_message_comes_before_the_first_data_message():
+    """KVH manual §3.4: at power-up the unit sends its BIT message, then the periodic data
+    (with power_up_bit, or the imu-dialogue-rate fault; off by default: same bytes as before)."""
+    from firmware_sim.devices.kvh import KvhImu
+
+    sim = Simulator(SimConfig(seed=11, accel_enabled=False))
+    sim._build()
+    try:
+        old = sim.imu
+        unit = KvhImu(old.world, old.gyro_model, old.accel_model, power_up_bit=True)
+        client = serial.Serial(unit.endpoint(), 921600, timeout=0.2)
+        try:
+            unit.advance(0.01)
+            while unit.port.pending:
+                unit.port.flush()
+            out = client.read(11 + 36 * 10)
+        finally:
+            client.close()
+            unit.close()
+    finally:
+        sim.stop()
+    assert out[:11] == bytes.fromhex("FE 81 00 AA 7F 7F 7F 7F 7F 7F 23")
+    assert out[11:15] == b"\xfe\x81\xff\x55" and len(out) == 11 + 36 * 10

@@ -181,11 +181,13 @@ def table() -> tuple[str, list[tuple[Row, bytes]]]:
                    f"| {verdict} |")
     out += [
         "",
-        "Also (not a line sent): at power-up a unit with a client on the line sends the BIT message",
-        "`FE 81 00 AA 7F 7F 7F 7F 7F 7F 23` before its first data message (§3.4); tests/test_sim_devices.py",
-        "pins it. The usage prompt is `USAGE,` and the command's usage line: the manual (§7) says a bad",
-        "parameter to a known keyword gets \"a prompt for the user starting with the …\"; the copy",
-        "available to us breaks off there, so that word is firmware-sim's choice.",
+        "Also (not a line sent): at power-up the unit sends the BIT message",
+        "`FE 81 00 AA 7F 7F 7F 7F 7F 7F 23` before its first data message (§3.4). firmware-sim does so",
+        "with `KvhImu(power_up_bit=True)` or the `imu-dialogue-rate` fault (which also sends it to each",
+        "new client); it is off by default so that every scenario's byte stream stays what it was (the",
+        "same-bytes tests). The usage prompt is `USAGE,` and the command's usage line: the manual (§7)",
+        "says a bad parameter to a known keyword gets \"a prompt for the user starting with the …\";",
+        "the copy available to us breaks off there, so that word is firmware-sim's choice.",
         "",
     ]
     return "\n".join(out), rows

@@ -272,7 +272,8 @@ class KvhImu(Device):
                  make_models: Any = None, faults: Any = None, fault_seed: Any = 0,
                  backlog_bytes: int | None = None, connect_grace_s: float = 0.0,
                  on_event: Callable[[str, float, dict[str, Any]], None] | None = None,
-                 link: Any = None, invalid_seed: Any = None, serial_number: str = "1775000001") -> None:
+                 link: Any = None, invalid_seed: Any = None, serial_number: str = "1775000001",
+                 power_up_bit: bool = False) -> None:
         if int(rate_hz) not in RATES_HZ:
             raise ValueError(f"IMU rate {rate_hz} Hz not allowed; use one of {RATES_HZ}")
         self.world = world
@@ -288,6 +289,9 @@ class KvhImu(Device):
         self.dialogue_rate = float(getattr(faults, "imu_dialogue_rate", 0.0) or 0.0)
         self.dialogue_rng = np.random.default_rng(fault_seed) if self.dialogue_rate else None
         self.dialogue_sent = 0
+        self.power_up_bit = bool(power_up_bit) or self.dialogue_rate > 0
+        """Send the power-up BIT message (§3.4) to a client there at power-on. Off unless asked for
+        (or imu-dialogue-rate is set), so that a scenario's bytes stay what they were."""
         """Text lines and BIT messages the imu-dialogue-rate fault put between messages."""
         self.lever_arm_b_m = np.asarray(lever_arm_b_m, dtype=float)
         self.temperature_c = float(temperature_c)
@@ -384,7 +388,7 @@ class KvhImu(Device):
         self._t_now = t_device_s
         if self._link is None:  # power-on: a client already there gets every sample, no grace
             self._link = "arming" if self.port.connected else "down"
-            if self.port.connected:  # the power-up BIT message comes before the periodic data (§3.4)
+            if self.port.connected and self.power_up_bit:  # before the periodic data (§3.4)
                 self._write(bit_message())
         self._disconnect_events(t_device_s)
         n_due = int(math.floor((t_device_s - self.epoch_s) * self.rate_hz + 1e-9)) - self.emitted
