@@ -87,3 +87,17 @@ def test_bit_checksum_covers_the_header_as_in_the_manual_example():
     assert kvh.encode_bit_message() == bytes.fromhex("FE 81 00 AA 7F 7F 7F 7F 7F 7F 23")
     (message, start), = kvh.find_bit_messages(b"\x00\x01" + bytes.fromhex("FE 81 00 AA 7F 7F 7F 7F 7F 7F 24"))
     assert start == 2 and not message.checksum_ok
+
+
+def test_another_commands_refusal_is_not_taken_for_this_one():
+    """An INVALID line for another input (a second terminal's) before the echo: the echo counts."""
+    proto = ExpectedProtocol([
+        (b"=CONFIG,1\n", b"INVALID,=FOO\r\nCONFIG,1\r\n"),
+        (b"?DR\n", b"DR,1000\r\n"),
+        (b"=CONFIG,0\n", b"CONFIG,0\r\n"),
+    ])
+    with Imu("expected://kvh", transport=proto, wait_for_data=False, timeout_s=2) as imu:
+        assert imu.query("DR") == "1000"
+    proto.assert_done()
+    assert kvh.find_refusal(b"INVALID,=FOO\r\nUSAGE,=DR,<1|5>\r\n", "DR") == ("USAGE,=DR,<1|5>", 31)
+    assert kvh.find_refusal(b"INVALID,=FOO\r\n", "DR") is None

@@ -253,12 +253,17 @@ def find_echo(data: bytes, key: str, value: object) -> int | None:
 _REFUSAL_RE = re.compile(rb"((?:INVALID|USAGE),[ -~]*)\r?\n")
 
 
-def find_refusal(data: bytes) -> tuple[str, int] | None:
-    """The first refusal in a byte buffer → (its text, end offset), or None. Manual §7, in
-    Configuration Mode: unknown or unaccepted input is answered ``INVALID,`` + the line received;
-    bad parameters to a known keyword the usage prompt (``USAGE,`` + how to write it)."""
-    m = _REFUSAL_RE.search(data)
-    return None if m is None else (m.group(1).decode("ascii"), m.end())
+def find_refusal(data: bytes, key: str | None = None) -> tuple[str, int] | None:
+    """The first refusal in a byte buffer (of the command ``=KEY`` when `key` is given) → (its
+    text, end offset), or None. Manual §7, in Configuration Mode: unknown or unaccepted input is
+    answered ``INVALID,`` + the line received; bad parameters to a known keyword the usage prompt
+    (``USAGE,`` + how to write it). Both name the command, so another command's refusal (an earlier
+    line's, or a second terminal's) is not taken for this one's."""
+    for m in _REFUSAL_RE.finditer(data):
+        text = m.group(1).decode("ascii")
+        if key is None or re.search(rf"[=?]{re.escape(key.upper())}(,|$)", text.upper()):
+            return text, m.end()
+    return None
 
 
 BIT_HEADER = b"\xfe\x81\x00\xaa"

@@ -362,7 +362,7 @@ class Imu(StreamReader):
         def answered() -> bool:
             text = bytes(self._text)
             end = kvh.find_echo(text, key, value)
-            refusal = kvh.find_refusal(text)
+            refusal = kvh.find_refusal(text, key)
             # <=: 'INVALID,=DR,1\r\n' ends where the echo 'DR,1\r\n' would
             if refusal is not None and (end is None or refusal[1] <= end):
                 found.append((refusal[1], refusal[0]))
