@@ -224,10 +224,10 @@ class Imu(StreamReader):
     def _find_bit_messages(self, data: bytes) -> None:
         """BIT messages (manual §5.3) between the data frames: kept for :meth:`built_in_test`. The
         decoder skips their bytes as it skips any non-frame bytes, so they cost no sample."""
-        if kvh.BIT_HEADER[:2] not in data and kvh.BIT_HEADER[:2] not in self._bit_carry + data[:1]:
-            self._bit_carry = data[-12:]
-            return
         buf = self._bit_carry + data
+        if kvh.BIT_HEADER[:3] not in buf:  # FE 81 00: both BIT headers; a data header is FE 81 FF
+            self._bit_carry = buf[-12:]
+            return
         base = self._decoder.stats.bytes - len(self._bit_carry)  # stream offset of buf[0] (before feed)
         for message, start in kvh.find_bit_messages(buf):
             if base + start >= self._bit_seen_until:
