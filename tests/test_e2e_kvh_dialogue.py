@@ -1,8 +1,9 @@
 """End to end with the KVH unit's whole dialogue in the stream (issue 23): firmware-sim with the
 imu-dialogue-rate fault puts echoes, query replies, INVALID lines and BIT messages between the
 data messages, and sends each new client the power-up BIT message first. `northfinder check`
-reports that BIT; an 8-position find counts 0 samples lost, and the raw IMU log, scanned
-independently of northfinder's decoder (every header, every CRC), shows that none was lost."""
+reports that BIT; an 8-position find counts exactly the samples the raw IMU log, scanned
+independently of northfinder's decoder (every header, every CRC), shows lost: none on a quiet
+host, and never one for a line of text or a BIT message."""
 
 from __future__ import annotations
 
@@ -65,7 +66,7 @@ def test_check_and_find_with_the_dialogue_in_the_stream(tmp_path):
         assert check.returncode == 0, check.stdout + check.stderr
         imu_line = next(ln for ln in check.stdout.splitlines() if f"imu on {ep['imu']}" in ln)
         print(imu_line)
-        assert "power-up BIT 7F 7F 7F 7F 7F 7F: all passed" in imu_line and ", 0 lost" in imu_line
+        assert "power-up BIT 7F 7F 7F 7F 7F 7F: all passed" in imu_line
 
         cfg = bench_config(ep, settings.latitude_deg)
         cfg.accelerometer.rate_hz = 50.0
@@ -77,16 +78,18 @@ def test_check_and_find_with_the_dialogue_in_the_stream(tmp_path):
     imu = result["faults"]["imu"]
     raw = (run_dir / "imu.raw").read_bytes()
     seq = _scan_frames(raw)
-    true_gaps = int(np.count_nonzero(np.diff(seq) % 128 != 1))
+    step = np.diff(seq) % 128
+    step[step == 0] = 128  # the same number again: a whole wrap went missing
+    true_lost = int((step - 1).sum())  # what the line really lost (a loaded host can overrun the pty)
     dialogue = _truth_events(truth_log, "imu_dialogue")
     inserted = sum(e.get("lines", e.get("fields", {}).get("lines", 0)) for e in dialogue)
     bit_in_raw = len(kvh.find_bit_messages(raw))
-    print(f"find: counted lost {imu['lost_samples']} (in dwells {imu['lost_in_dwells']}), true gaps in "
-          f"the raw log {true_gaps}; {len(seq)} frames, {inserted} dialogue insertions by the sim "
+    print(f"find: counted lost {imu['lost_samples']} (in dwells {imu['lost_in_dwells']}), truly lost in "
+          f"the raw log {true_lost}; {len(seq)} frames, {inserted} dialogue insertions by the sim "
           f"(whole run), {bit_in_raw} BIT messages and {raw.count(b'INVALID,')} INVALID lines in imu.raw, "
           f"{imu['resyncs']} resyncs, {imu['skipped_bytes']} skipped bytes")
     assert inserted > 0 and bit_in_raw > 0 and b"INVALID,=FOO\r\n" in raw  # the dialogue was there
-    assert true_gaps == 0  # nothing was lost on the line ...
-    assert imu["lost_samples"] == 0 and imu["lost_in_dwells"] == 0 and imu["bad_crc"] == 0  # ... nor counted
+    assert imu["lost_samples"] == true_lost and imu["bad_crc"] == 0  # nothing counted lost that was not
+    assert sum(p["lost_samples"] for p in result["positions"]) == imu["lost_in_dwells"] <= true_lost
     for p in result["positions"]:
-        assert p["samples"] == 3000 and p["lost_samples"] == 0
+        assert p["samples"] == 3000

@@ -181,6 +181,8 @@ DR_VALUES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000, 3600, 5000)
 """`=DR` values the unit accepts (§8.8.2); the simulator's configuration starts at one of RATES_HZ."""
 BAUD_VALUES = ("9600", "19200", "38400", "57600", "115200", "460800", "576000", "921600", "4147200")
 FILTER_TYPES = ("CHEBY", "BUTTER", "AVE")
+IDENTITY = np.eye(3)
+IDENTITY.flags.writeable = False
 
 
 class _BadParameter(ValueError):
@@ -483,7 +485,8 @@ class KvhImu(Device):
                 raise _BadParameter from None
             if len(values) != 9:
                 raise _BadParameter
-            self.axes_matrix = np.array(values).reshape(3, 3)
+            matrix = np.array(values).reshape(3, 3)
+            self.axes_matrix = IDENTITY if np.array_equal(matrix, IDENTITY) else matrix
         return self._echo(key, ",".join(f"{v:+.6E}" for v in self.axes_matrix.ravel()))
 
     def _cmd_bit(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
@@ -531,7 +534,7 @@ class KvhImu(Device):
         self.baud = "921600"
         self.msync = "IMU"
         self.filter_type = {"A": "CHEBY", "G": "BUTTER"}
-        self.axes_matrix = np.eye(3)
+        self.axes_matrix = IDENTITY
 
     def _set_rate(self, rate_hz: int, t: float) -> None:
         """`=DR`: a new sample grid from the last sample's end (no interval skipped or doubled);
@@ -564,7 +567,7 @@ class KvhImu(Device):
             accel_g = np.asarray(dv, dtype=np.float64) / (dt * STANDARD_GRAVITY_M_S2)
         else:
             accel_g = np.zeros((n, 3))
-        if not np.array_equal(self.axes_matrix, np.eye(3)):  # =AXES (§8.1): data in the user's axes
+        if self.axes_matrix is not IDENTITY:  # =AXES (§8.1): data in the user's axes
             gyro = gyro @ self.axes_matrix.T
             accel_g = accel_g @ self.axes_matrix.T
         if not self.gyro_mask.all():  # axes the unit does not have send 0.0
