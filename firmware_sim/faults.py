@@ -27,6 +27,10 @@ class Faults:
     imu_invalid_rate: float = 0.0
     """Probability per KVH message that it is flagged invalid (built-in test): the valid bits of the
     unit's axes cleared, garbage in those fields, CRC and sequence intact."""
+    imu_dialogue_rate: float = 0.0
+    """Probability per KVH message that the unit's text output follows it on the line (echoes,
+    query replies, INVALID lines, BIT messages), as a second terminal would cause; a new client
+    also gets the power-up BIT message before its first frame."""
     imu_silence: tuple[float, float] | None = None
     """(start_s, duration_s): the IMU sends nothing in that window (its counter runs on)."""
     imu_disconnect: tuple[float, float] | None = None
@@ -78,6 +82,7 @@ _DOC = {
     "imu-crc-rate": "a probability 0..1, e.g. imu-crc-rate=0.01",
     "imu-drop-byte-rate": "a probability 0..1, e.g. imu-drop-byte-rate=0.001",
     "imu-invalid-rate": "a probability 0..1 per KVH message, e.g. imu-invalid-rate=0.01",
+    "imu-dialogue-rate": "a probability 0..1 per KVH message, e.g. imu-dialogue-rate=0.002",
     "imu-silence": "START_S:DURATION_S in device seconds, e.g. imu-silence=10:2",
     "imu-disconnect": "AT_S or AT_S:DOWN_S in device seconds, e.g. imu-disconnect=5:1",
     "stage-stall": "a move number counted from 1, e.g. stage-stall=2",
@@ -121,8 +126,8 @@ def parse_fault(name: str, value: object) -> tuple[str, object]:
         known = ", ".join(sorted(_DOC))
         raise FaultError(f"unknown fault {name!r}; known faults: {known}")
     text = str(value).strip()
-    if key in ("imu-crc-rate", "imu-drop-byte-rate", "imu-invalid-rate", "accel-loss-rate",
-               "gnss-bad-checksum-rate", "gnss-truncate-rate"):
+    if key in ("imu-crc-rate", "imu-drop-byte-rate", "imu-invalid-rate", "imu-dialogue-rate",
+               "accel-loss-rate", "gnss-bad-checksum-rate", "gnss-truncate-rate"):
         parsed: object = _rate(key, text)
     elif key in ("imu-silence", "gnss-nofix"):
         start, dur = _floats(key, text, 2, 2)

@@ -160,14 +160,14 @@ def test_configure_dance_discards_the_two_invalid_messages():
     after, gyro = _frames(7, start_seq=5, seed=4)
     proto = ExpectedProtocol(
         [
-            (b"=CONFIG,1\n", None),
-            (b"=DR,100\n", None),
-            (b"=ROTFMT,RATE\n", None),
-            (b"=ROTUNITS,DEG\n", None),
-            (b"?DR\n", b"DR,100\n"),
-            (b"?ROTFMT\n", b"ROTFMT,RATE\n"),
-            (b"?ROTUNITS\n", b"ROTUNITS,DEG\n"),
-            (b"=CONFIG,0\n", b"".join(after)),
+            (b"=CONFIG,1\n", b"CONFIG,1\r\n"),
+            (b"=DR,100\n", b"DR,100\r\n"),
+            (b"=ROTFMT,RATE\n", b"ROTFMT,RATE\r\n"),
+            (b"=ROTUNITS,DEG\n", b"ROTUNITS,DEG\r\n"),
+            (b"?DR\n", b"DR,100\r\n"),
+            (b"?ROTFMT\n", b"ROTFMT,RATE\r\n"),
+            (b"?ROTUNITS\n", b"ROTUNITS,DEG\r\n"),
+            (b"=CONFIG,0\n", b"CONFIG,0\r\n" + b"".join(after)),
         ],
         initial=b"".join(before),
     )
@@ -184,7 +184,8 @@ def test_configure_dance_discards_the_two_invalid_messages():
 
 
 def test_query_outside_config_mode_enters_and_leaves():
-    proto = ExpectedProtocol([(b"=CONFIG,1\n", None), (b"?DR\n", b"DR,1000\n"), (b"=CONFIG,0\n", None)])
+    proto = ExpectedProtocol([(b"=CONFIG,1\n", b"CONFIG,1\r\n"), (b"?DR\n", b"DR,1000\n"),
+                              (b"=CONFIG,0\n", b"CONFIG,0\r\n")])
     with Imu("expected://kvh", transport=proto, wait_for_data=False) as imu:
         assert imu.query("dr") == "1000"
     proto.assert_done()
@@ -198,7 +199,8 @@ def test_configure_rejects_bad_values_and_silence():
             imu.configure(rate_hz=333)
         with pytest.raises(ConfigError, match="rot_units"):
             imu.configure(rot_units="GRAD")
-    proto = ExpectedProtocol([(b"=CONFIG,1\n", None), (b"?DR\n", None), (b"=CONFIG,0\n", None)])
+    proto = ExpectedProtocol([(b"=CONFIG,1\n", b"CONFIG,1\r\n"), (b"?DR\n", None),
+                              (b"=CONFIG,0\n", b"CONFIG,0\r\n")])
     with Imu("expected://kvh", transport=proto, wait_for_data=False, timeout_s=0.2) as imu:
         with pytest.raises(DeviceError, match="no answer to \\?DR"):
             imu.query("DR")

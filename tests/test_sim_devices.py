@@ -290,17 +290,25 @@ def test_kvh_configuration_mode(bench):
         first = _messages(_read_exact(port, 36 * 200))
         assert first["crc_ok"][:100].all() and (first["status"][:100] == 0x77).all()
         port.write(b"=CONFIG,1\n")
+        port.timeout = 5.0
+        assert port.read_until(b"CONFIG,1\r\n").endswith(b"CONFIG,1\r\n")  # the echo (manual §7)
         _read_quiet(port)  # what was already on its way
         port.write(b"?DR\n")
-        port.timeout = 5.0
-        assert port.read_until(b"DR,1000\n").endswith(b"DR,1000\n")
+        assert port.read_until(b"DR,1000\r\n").endswith(b"DR,1000\r\n")
         assert _read_quiet(port, 0.3) == b""  # 3 s of device time: configuration mode sends no data
-        for line in (b"=DR,100\n", b"=ROTFMT,RATE\n", b"=ROTUNITS,DEG\n", b"=DR,333\n", b"=ROTFMT,FOO\n"):
+        for line in (b"=DR,100\n", b"=ROTFMT,RATE\n", b"=ROTUNITS,DEG\n", b"=DR,333\n", b"=ROTFMT,FOO\n",
+                     b"=FOO\n"):
             port.write(line)
         port.write(b"?DR\n?ROTFMT\n?ROTUNITS\n")
         port.timeout = 2.0
-        assert [port.readline() for _ in range(3)] == [b"DR,100\n", b"ROTFMT,RATE\n", b"ROTUNITS,DEG\n"]
+        assert [port.readline() for _ in range(9)] == [
+            b"DR,100\r\n", b"ROTFMT,RATE\r\n", b"ROTUNITS,DEG\r\n",  # echoes
+            b"USAGE,=DR,<1|5|10|25|50|100|250|500|750|1000|3600|5000>\r\n",  # bad parameters: the prompt
+            b"USAGE,=ROTFMT,<DELTA|RATE>\r\n",
+            b"INVALID,=FOO\r\n",  # unknown input: INVALID + the echo
+            b"DR,100\r\n", b"ROTFMT,RATE\r\n", b"ROTUNITS,DEG\r\n"]
         port.write(b"=CONFIG,0\n")
+        assert _read_exact(port, 10) == b"CONFIG,0\r\n"
         msgs = kvh.unpack_messages(_read_exact(port, 36 * 50))  # data again, from a message boundary
         assert msgs["crc_ok"].all()
         assert (msgs["status"][:2] == 0).all() and (msgs["status"][2:] == 0x77).all()
@@ -657,3 +665,28 @@ def test_loop_does_not_spin_on_ports_without_a_client():
         sim.stop()
     # one tick per select timeout (a few ms) when idle; a spinning loop does tens of thousands
     assert rate < 2000, f"{rate:.0f} loop ticks per second with no client"
+
+
+def test_kvh_power_up_bit_message_comes_before_the_first_data_message():
+    """KVH manual §3.4: at power-up the unit sends its BIT message, then the periodic data
+    (with power_up_bit, or the imu-dialogue-rate fault; off by default: same bytes as before)."""
+    from firmware_sim.devices.kvh import KvhImu
+
+    sim = Simulator(SimConfig(seed=11, accel_enabled=False))
+    sim._build()
+    try:
+        old = sim.imu
+        unit = KvhImu(old.world, old.gyro_model, old.accel_model, power_up_bit=True)
+        client = serial.Serial(unit.endpoint(), 921600, timeout=0.2)
+        try:
+            unit.advance(0.01)
+            while unit.port.pending:
+                unit.port.flush()
+            out = client.read(11 + 36 * 10)
+        finally:
+            client.close()
+            unit.close()
+    finally:
+        sim.stop()
+    assert out[:11] == bytes.fromhex("FE 81 00 AA 7F 7F 7F 7F 7F 7F 23")
+    assert out[11:15] == b"\xfe\x81\xff\x55" and len(out) == 11 + 36 * 10

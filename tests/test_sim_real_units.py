@@ -25,6 +25,9 @@ GYRO_BIT = {"x": 0x01, "y": 0x02, "z": 0x04}
 ACCEL_BITS = 0x70
 
 
+POWER_UP_BIT = bytes.fromhex("FE 81 00 AA 7F 7F 7F 7F 7F 7F 23")
+
+
 def _read_exact(port: serial.Serial, n: int, timeout_s: float = 30.0) -> bytes:
     out = bytearray()
     deadline = time.monotonic() + timeout_s
@@ -97,10 +100,14 @@ def test_invalid_frames_match_the_truth_log_and_carry_garbage_only_where_bits_ar
         port = serial.Serial(ep["imu"], 921600, timeout=1.0)
         try:
             data = _read_exact(port, 36 * 3000)
-            port.write(b"=DR,500\n")
-            data += _read_exact(port, 36 * 3000)
+            if data.startswith(POWER_UP_BIT):  # a client there at power-on hears it first (KVH manual §3.4)
+                data = data[len(POWER_UP_BIT):] + _read_exact(port, len(POWER_UP_BIT))
+            port.write(b"=CONFIG,1\n=DR,500\n=CONFIG,0\n")  # =DR is answered in Configuration Mode only
+            data += _read_exact(port, 36 * 3000 + 28)  # and the three echoes (§7)
         finally:
             port.close()
+    for echo in (b"CONFIG,1\r\n", b"DR,500\r\n", b"CONFIG,0\r\n"):
+        data = data.replace(echo, b"", 1)
     msgs = _frames(data)
     events = _events(truth)
     (connect,) = [e for e in events if e["event"] == "imu_connect"]

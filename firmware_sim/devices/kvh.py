@@ -1,5 +1,13 @@
 """KVH 1750/1760/1775 IMU speaking "format A" (docs/PROTOCOLS.md §2) on a pty.
 
+Reference: the KVH 1775 IMU technical manual / ICD (56-0298). Data messages: Tables 5-1, 5-2
+(format A), 5-8 (status), 5-9 (CRC). The dialogue: §7 "Commands and Queries" (echo without the
+`=`, `KEY,value` replies, `INVALID,` + the line in Configuration Mode, a usage prompt for bad
+parameters, nothing answered in Normal Mode but `=CONFIG` and `?BIT`), §8 (one entry per command:
+the COMMANDS table below), §3.3 (Normal vs Configuration Mode), §3.4 and §5.3 (the BIT message,
+sent at power-up before the data and on `?BIT`). What firmware-sim answers to each command
+against what the manual says: docs/conformance/kvh.md (tools/conformance_kvh.py).
+
 The codec is written here from the protocol sheet: messages are packed many at a time into a
 numpy structured array (big-endian fields), and their CRC-32/MPEG-2 is computed for all of them
 at once with a lookup table (one table step per two byte positions, vectorized over the
@@ -24,6 +32,7 @@ import math
 import os
 import tempfile
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -144,6 +153,107 @@ def unpack_messages(data: bytes) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------
+# BIT messages (manual §3.4 built-in test, §5.3 BIT message; tech. manual "Extended BIT")
+# ---------------------------------------------------------------------------------------------
+BIT_HEADER = b"\xfe\x81\x00\xaa"
+"""Extended BIT message: this header, 6 data bytes, a checksum byte (§5.3)."""
+BIT2_HEADER = b"\xfe\x81\x00\xab"
+"""Extended BIT, 2 (`?BIT,2`): this header, 8 data bytes, a checksum byte."""
+BIT_HEALTHY = 0x7F
+"""Every data byte of a healthy unit's BIT message ("FE 81 00 AA 7F 7F 7F 7F 7F 7F 23")."""
+
+
+def bit_message(extended: bool = False, data: bytes | None = None) -> bytes:
+    """A BIT message: header, data bytes (all BIT_HEALTHY unless given), and the checksum, the sum
+    of every byte before it modulo 256 — header included: that is what makes the manual's example
+    end in 0x23 (0xFE+0x81+0x00+0xAA + 6·0x7F = 0x523)."""
+    header = BIT2_HEADER if extended else BIT_HEADER
+    body = header + (bytes([BIT_HEALTHY] * (8 if extended else 6)) if data is None else bytes(data))
+    return body + bytes([sum(body) & 0xFF])
+
+
+# ---------------------------------------------------------------------------------------------
+# The command table (manual §7 general rules, §8 one entry per command)
+# ---------------------------------------------------------------------------------------------
+EOL = b"\r\n"
+"""Replies end in CR LF (§7: "either one or both of" CR and LF)."""
+DR_VALUES_HZ = (1, 5, 10, 25, 50, 100, 250, 500, 750, 1000, 3600, 5000)
+"""`=DR` values the unit accepts (§8.8.2); the simulator's configuration starts at one of RATES_HZ."""
+BAUD_VALUES = ("9600", "19200", "38400", "57600", "115200", "460800", "576000", "921600", "4147200")
+FILTER_TYPES = ("CHEBY", "BUTTER", "AVE")
+IDENTITY = np.eye(3)
+IDENTITY.flags.writeable = False
+
+
+class _BadParameter(ValueError):
+    """A known keyword with parameters it does not take: answered with its usage prompt (§7)."""
+
+
+@dataclass(frozen=True)
+class Command:
+    """One row of the command table: how it is written, what it does, the manual entry."""
+
+    kind: str  # "=" command or "?" query
+    key: str
+    handler: str
+    usage: str
+    summary: str
+    section: str
+
+
+def _command_table() -> dict[tuple[str, str], Command]:
+    rows = [
+        ("=", "AXES", "_cmd_axes", "=AXES,<X0>,<X1>,<X2>,<Y0>,<Y1>,<Y2>,<Z0>,<Z1>,<Z2>",
+         "set the alignment matrix applied to gyro and accel data", "8.1"),
+        ("?", "AXES", "_cmd_axes", "?AXES", "query the alignment matrix", "8.2"),
+        ("=", "BAUD", "_cmd_choice", "=BAUD,<" + "|".join(BAUD_VALUES) + ">", "set the baud rate", "8.3"),
+        ("?", "BAUD", "_cmd_choice", "?BAUD", "query the baud rate", "8.4"),
+        ("?", "BIT", "_cmd_bit", "?BIT[,2]", "extended built-in test: a BIT message", "8.5"),
+        ("=", "CONFIG", "_cmd_config", "=CONFIG,<0|1>", "1 enters Configuration Mode, 0 returns to Normal",
+         "3.3, 8"),
+        ("?", "CONFIG", "_cmd_config", "?CONFIG", "query the operating mode", "3.3, 8"),
+        ("=", "DR", "_cmd_dr", "=DR,<" + "|".join(map(str, DR_VALUES_HZ)) + ">", "set the data rate, Hz",
+         "8.8"),
+        ("?", "DR", "_cmd_dr", "?DR", "query the data rate", "8.9"),
+        ("=", "FILTTYPE", "_cmd_filttype", "=FILTTYPE,<A|G>,<CHEBY|BUTTER|AVE>",
+         "set the accel (A) or gyro (G) output filter type", "8.16"),
+        ("?", "FILTTYPE", "_cmd_filttype", "?FILTTYPE,<A|G>", "query a filter type", "8.17"),
+        ("=", "HELP", "_cmd_help", "=HELP[,command]", "list the commands", "8.18"),
+        ("?", "HELP", "_cmd_help", "?HELP[,command]", "the same as =HELP", "8.19"),
+        ("?", "IS", "_cmd_is", "?IS", "query the unit's serial number", "8.20"),
+        ("=", "MSYNC", "_cmd_choice", "=MSYNC,<IMU|EXT>", "output timed by the unit or by MSYNC pulses", "8"),
+        ("?", "MSYNC", "_cmd_choice", "?MSYNC", "query the MSYNC mode", "8"),
+        ("=", "RESTART", "_cmd_restart", "=RESTART", "restart the unit (power-up BIT message again)", "8"),
+        ("=", "ROTFMT", "_cmd_choice", "=ROTFMT,<DELTA|RATE>", "gyro output as delta angle or rate", "8"),
+        ("?", "ROTFMT", "_cmd_choice", "?ROTFMT", "query the gyro output format", "8"),
+        ("=", "ROTUNITS", "_cmd_choice", "=ROTUNITS,<RAD|DEG>", "gyro output in radians or degrees", "8"),
+        ("?", "ROTUNITS", "_cmd_choice", "?ROTUNITS", "query the gyro output units", "8"),
+        ("=", "RSTCFG", "_cmd_rstcfg", "=RSTCFG", "restore the factory configuration (baud kept)", "8"),
+        ("=", "TEMPUNITS", "_cmd_choice", "=TEMPUNITS,<C|F>", "temperature field in deg C or deg F", "8"),
+        ("?", "TEMPUNITS", "_cmd_choice", "?TEMPUNITS", "query the temperature units", "8"),
+    ]
+    return {(kind, key): Command(kind, key, handler, usage, summary, section)
+            for kind, key, handler, usage, summary, section in rows}
+
+
+COMMANDS = _command_table()
+NORMAL_MODE_COMMANDS = {("=", "CONFIG"), ("?", "BIT")}
+"""What the unit answers in Normal Mode (§3.3 "permissible commands", §8.5 ?BIT "while it is running
+in Normal (binary) Mode"); any other input is ignored there (§7)."""
+CHOICES = {
+    "ROTFMT": ("rot_format", ("DELTA", "RATE")),
+    "ROTUNITS": ("rot_units", ("RAD", "DEG")),
+    "TEMPUNITS": ("temp_units", ("C", "F")),
+    "BAUD": ("baud", BAUD_VALUES),
+    "MSYNC": ("msync", ("IMU", "EXT")),
+}
+
+DIALOGUE_LINES = (b"CONFIG,1", b"DR,1000", b"ROTFMT,DELTA", b"INVALID,=FOO", b"CONFIG,0")
+"""What the imu-dialogue-rate fault puts between messages besides BIT messages: echoes, query
+replies and an INVALID line, as a second terminal sharing the line would cause."""
+
+
+# ---------------------------------------------------------------------------------------------
 # The IMU
 # ---------------------------------------------------------------------------------------------
 class KvhImu(Device):
@@ -164,15 +274,27 @@ class KvhImu(Device):
                  make_models: Any = None, faults: Any = None, fault_seed: Any = 0,
                  backlog_bytes: int | None = None, connect_grace_s: float = 0.0,
                  on_event: Callable[[str, float, dict[str, Any]], None] | None = None,
-                 link: Any = None, invalid_seed: Any = None) -> None:
+                 link: Any = None, invalid_seed: Any = None, serial_number: str = "1775000001",
+                 power_up_bit: bool = False) -> None:
         if int(rate_hz) not in RATES_HZ:
             raise ValueError(f"IMU rate {rate_hz} Hz not allowed; use one of {RATES_HZ}")
         self.world = world
         self.valid_bits, self.gyro_mask, self.has_accel = axes_status(axes)
         self.axes = axes
         self.rate_hz = int(rate_hz)
-        self.rot_format = rot_format.upper()
-        self.rot_units = rot_units.upper()
+        self.default_rot_format = self.rot_format = rot_format.upper()
+        self.default_rot_units = self.rot_units = rot_units.upper()
+        self.default_rate_hz = self.rate_hz
+        self.serial_number = serial_number
+        self._defaults()
+        self._bit_due: bytes | None = None
+        self.dialogue_rate = float(getattr(faults, "imu_dialogue_rate", 0.0) or 0.0)
+        self.dialogue_rng = np.random.default_rng(fault_seed) if self.dialogue_rate else None
+        self.dialogue_sent = 0
+        self.power_up_bit = bool(power_up_bit) or self.dialogue_rate > 0
+        """Send the power-up BIT message (§3.4) to a client there at power-on. Off unless asked for
+        (or imu-dialogue-rate is set), so that a scenario's bytes stay what they were."""
+        """Text lines and BIT messages the imu-dialogue-rate fault put between messages."""
         self.lever_arm_b_m = np.asarray(lever_arm_b_m, dtype=float)
         self.temperature_c = float(temperature_c)
         self.make_models = make_models
@@ -268,45 +390,151 @@ class KvhImu(Device):
         self._t_now = t_device_s
         if self._link is None:  # power-on: a client already there gets every sample, no grace
             self._link = "arming" if self.port.connected else "down"
+            if self.port.connected and self.power_up_bit:  # before the periodic data (§3.4)
+                self._write(bit_message())
         self._disconnect_events(t_device_s)
         n_due = int(math.floor((t_device_s - self.epoch_s) * self.rate_hz + 1e-9)) - self.emitted
         if n_due > 0:
-            if self.config_mode:  # no data in configuration mode; the grid moves on
+            if self.config_mode or self.msync == "EXT":  # no data (no MSYNC pulses here); the grid moves on
                 self.emitted += n_due
             else:
                 self._emit(n_due)
         if self.link is not None:
             self.link.pump(t_device_s, self.port)
 
-    # -- configuration ------------------------------------------------------------------------
+    # -- configuration (manual §7 "Commands and Queries", §8 command entries) -------------------
     def handle_line(self, line: str, t: float) -> None:
-        """One ASCII configuration line (`=CONFIG,1`, `=DR,100`, `?DR`, …)."""
-        key, _, value = line[1:].partition(",")
+        """One ASCII line (`=CONFIG,1`, `=DR,100`, `?DR`, …), answered as the manual's §7 says:
+        a command is echoed without its `=`, a query answered as `KEY,value`; in Normal Mode only
+        NORMAL_MODE_COMMANDS are answered and anything else ignored; in Configuration Mode unknown
+        input gets `INVALID,` + the line, bad parameters to a known keyword the usage prompt."""
+        for reply in self.answer(line, t):
+            self._write(reply)
+
+    def answer(self, line: str, t: float) -> list[bytes]:
+        """The unit's reply to one line, as bytes to send (text lines, or a BIT message), applying
+        what it commands. Separate from the port so the conformance tool can tabulate it."""
+        text = line.strip()
+        kind, body = text[:1], text[1:]
+        key, _, args = body.partition(",")
         key = key.strip().upper()
-        value = value.strip().upper()
-        if line.startswith("?"):
-            answer = {"DR": str(self.rate_hz), "ROTFMT": self.rot_format, "ROTUNITS": self.rot_units,
-                      "CONFIG": "1" if self.config_mode else "0"}.get(key)
-            if answer is None:
-                log.info("imu: unknown query %r ignored", line)
-                return
-            self._write(f"{key},{answer}\n".encode("ascii"))
-        elif line.startswith("="):
-            if key == "CONFIG" and value in ("0", "1"):
-                leaving = self.config_mode and value == "0"
-                self.config_mode = value == "1"
-                if leaving:  # the grid moved on without samples: a new k ↔ t anchor
-                    self._grid_event("config_end")
-            elif key == "DR" and value.isdigit() and int(value) in RATES_HZ:
-                self._set_rate(int(value), t)  # even to the same rate: the sample clock restarts
-            elif key == "ROTFMT" and value in ("DELTA", "RATE"):
-                self.rot_format = value
-            elif key == "ROTUNITS" and value in ("RAD", "DEG"):
-                self.rot_units = value
-            else:
-                log.info("imu: bad command %r ignored", line)
-        else:
-            log.info("imu: unknown line %r ignored", line)
+        args = args.strip().upper()
+        known = COMMANDS.get((kind, key))
+        if not self.config_mode and (kind, key) not in NORMAL_MODE_COMMANDS:
+            log.info("imu: %r ignored in Normal Mode (manual §7)", text)
+            return []
+        if known is None:
+            return [] if not self.config_mode else [f"INVALID,{text}".upper().encode("ascii") + EOL]
+        handler = getattr(self, known.handler)
+        try:
+            out = handler(kind, key, args, t)
+        except _BadParameter:
+            return [f"USAGE,{known.usage}".encode("ascii") + EOL]
+        return out
+
+    def _echo(self, key: str, args: str) -> list[bytes]:
+        return [(f"{key},{args}" if args else key).encode("ascii") + EOL]
+
+    def _cmd_config(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        if kind == "?":
+            return self._echo(key, "1" if self.config_mode else "0")
+        if args not in ("0", "1"):
+            raise _BadParameter
+        leaving = self.config_mode and args == "0"
+        self.config_mode = args == "1"
+        if leaving:  # the grid moved on without samples: a new k ↔ t anchor
+            self._grid_event("config_end")
+        return self._echo(key, args)
+
+    def _cmd_dr(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        if kind == "?":
+            return self._echo(key, str(self.rate_hz))
+        if not args.isdigit() or int(args) not in DR_VALUES_HZ:
+            raise _BadParameter
+        self._set_rate(int(args), t)  # even to the same rate: the sample clock restarts
+        return self._echo(key, str(int(args)))
+
+    def _cmd_choice(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        """A setting with a fixed set of values (ROTFMT, ROTUNITS, TEMPUNITS, BAUD, MSYNC)."""
+        attr, values = CHOICES[key]
+        if kind == "?":
+            return self._echo(key, str(getattr(self, attr)))
+        if args not in values:
+            raise _BadParameter
+        setattr(self, attr, args)
+        return self._echo(key, args)
+
+    def _cmd_filttype(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        which, _, ftype = args.partition(",")
+        if which not in ("A", "G"):
+            raise _BadParameter
+        if kind == "?":
+            if ftype:
+                raise _BadParameter
+            return self._echo(key, f"{which},{self.filter_type[which]}")
+        if ftype not in FILTER_TYPES:
+            raise _BadParameter
+        self.filter_type[which] = ftype
+        return self._echo(key, args)
+
+    def _cmd_axes(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        if kind == "=":
+            try:
+                values = [float(v) for v in args.split(",")]
+            except ValueError:
+                raise _BadParameter from None
+            if len(values) != 9:
+                raise _BadParameter
+            matrix = np.array(values).reshape(3, 3)
+            self.axes_matrix = IDENTITY if np.array_equal(matrix, IDENTITY) else matrix
+        return self._echo(key, ",".join(f"{v:+.6E}" for v in self.axes_matrix.ravel()))
+
+    def _cmd_bit(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        if args not in ("", "2"):
+            raise _BadParameter
+        message = bit_message(extended=args == "2")
+        if self.config_mode:
+            return [message]
+        self._bit_due = message  # Normal Mode: sent right after the next data message (§8.5)
+        return []
+
+    def _cmd_is(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        if args:
+            raise _BadParameter
+        return self._echo(key, self.serial_number)
+
+    def _cmd_help(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        rows = [c for c in COMMANDS.values() if not args or c.key == args.lstrip("=?")]
+        if not rows:
+            raise _BadParameter
+        return [f"{c.usage} : {c.summary}".encode("ascii") + EOL for c in rows]
+
+    def _cmd_rstcfg(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        if args:
+            raise _BadParameter
+        baud = self.baud
+        self._defaults()
+        self.baud = baud  # §8 (=BAUD): the baud rate is not changed by RSTCFG
+        if self.rate_hz != self.default_rate_hz:
+            self._set_rate(self.default_rate_hz, t)
+        return self._echo(key, "")
+
+    def _cmd_restart(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        if args:
+            raise _BadParameter
+        self.config_mode = False  # the unit comes back in Normal Mode, BIT message first (§3.4)
+        self._grid_event("restart")
+        return self._echo(key, "") + [bit_message()]
+
+    def _defaults(self) -> None:
+        """The settings a unit has from the factory (and after =RSTCFG)."""
+        self.rot_format = self.default_rot_format
+        self.rot_units = self.default_rot_units
+        self.temp_units = "C"
+        self.baud = "921600"
+        self.msync = "IMU"
+        self.filter_type = {"A": "CHEBY", "G": "BUTTER"}
+        self.axes_matrix = IDENTITY
 
     def _set_rate(self, rate_hz: int, t: float) -> None:
         """`=DR`: a new sample grid from the last sample's end (no interval skipped or doubled);
@@ -339,6 +567,9 @@ class KvhImu(Device):
             accel_g = np.asarray(dv, dtype=np.float64) / (dt * STANDARD_GRAVITY_M_S2)
         else:
             accel_g = np.zeros((n, 3))
+        if self.axes_matrix is not IDENTITY:  # =AXES (§8.1): data in the user's axes
+            gyro = gyro @ self.axes_matrix.T
+            accel_g = accel_g @ self.axes_matrix.T
         if not self.gyro_mask.all():  # axes the unit does not have send 0.0
             gyro = gyro * self.gyro_mask
         k_abs = self.produced + 1 + np.arange(n)
@@ -361,10 +592,32 @@ class KvhImu(Device):
             keep[:] = False
         if not keep.any():
             return
-        data = pack_messages(gyro[keep], accel_g[keep], status[keep], seq[keep], self.temperature_c)
+        temperature = self.temperature_c if self.temp_units == "C" else self.temperature_c * 9 / 5 + 32
+        data = pack_messages(gyro[keep], accel_g[keep], status[keep], seq[keep], temperature)
         data, sizes = self._corrupt(data)
         self.messages_sent += int(keep.sum())
         self._deliver(data, sizes, k_abs[keep], seq[keep], t_end[keep])
+        if self._link == "up":
+            self._after_data(int(keep.sum()))
+
+    def _after_data(self, n_messages: int) -> None:
+        """What follows data messages on the line: a `?BIT` answer (after the next data message,
+        §8.5) and, with the imu-dialogue-rate fault, text lines and BIT messages between them."""
+        if self._bit_due is not None:
+            self._write(self._bit_due)
+            self._bit_due = None
+        if self.dialogue_rng is None:
+            return
+        draws = self.dialogue_rng.random((n_messages, 2))
+        picked = draws[draws[:, 0] < self.dialogue_rate, 1]
+        if not len(picked):
+            return
+        options = len(DIALOGUE_LINES) + 1
+        out = b"".join(bit_message() if int(u * options) == len(DIALOGUE_LINES)
+                       else DIALOGUE_LINES[int(u * options)] + EOL for u in picked)
+        self.dialogue_sent += len(picked)
+        self._write(out)
+        self._event("imu_dialogue", lines=len(picked), bytes=len(out), total=self.dialogue_sent)
 
     def _count_invalid(self, k: np.ndarray, reason: str) -> None:
         if len(k):
@@ -417,6 +670,8 @@ class KvhImu(Device):
             self.port.bytes_unheard += skip
             data = data[skip:]  # (nothing stale is queued: the last disconnect discarded it)
             self._link = "up"
+            if self.dialogue_rate:  # as if powered on with the host listening: BIT message first
+                self._write(bit_message())
             self._event("imu_connect", k0=int(k_abs[i0]), sequence0=int(seq[i0]),
                         t0_device_s=float(t_end[i0]), rate_hz=self.rate_hz, port=self.port.path)
         self.k_last_delivered = int(k_abs[-1])

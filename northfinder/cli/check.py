@@ -49,6 +49,7 @@ def probe_imu(cfg: bench.BenchConfig) -> str:
         units = imu.query("ROTUNITS")
         block = imu.read(max(2, int(imu.rate_hz // 10)), timeout_s=3.0)
         axes = imu.axes
+        bit, bit_source = imu.built_in_test()
         stats = imu.stats
         if "y" not in axes.gyro:
             raise DeviceError("imu", i.port, f"{axes.describe()} (status bits): north finding needs a "
@@ -56,7 +57,8 @@ def probe_imu(cfg: bench.BenchConfig) -> str:
         settle = "settles by gyro z" if "z" in axes.gyro else "no gyro z: READY + [turntable] settle_s"
         return (
             f"imu on {i.port}: {rate} Hz, format A, {fmt} {units}; {axes.describe()} ({settle}); "
-            f"{len(block.sample_index)} samples read, {stats.bad_crc} bad CRC, {stats.lost_samples} lost"
+            f"{len(block.sample_index)} samples read, {stats.bad_crc} bad CRC, {stats.lost_samples} lost; "
+            f"{bit_source} {bit.describe()}"
         )
 
 

@@ -1,5 +1,12 @@
 """KVH 1750/1760/1775 IMU driver, format A (docs/PROTOCOLS.md §2).
 
+The dialogue follows the KVH 1775 technical manual §7: every configuration command is confirmed
+by its echo (``=DR,100`` → ``DR,100``), and an ``INVALID,…`` or ``USAGE,…`` answer is a
+DeviceError naming the command the unit refused. Echoes, query replies and BIT messages (§5.3)
+that arrive between data messages are skipped by the decoder like any non-frame bytes (no sample
+is counted lost for them); BIT messages are kept (:meth:`Imu.built_in_test`: the power-up one, or
+``?BIT``, which the manual allows in Normal Mode, §8.5).
+
 A background thread reads whatever the port delivers, writes it to the raw log as it arrives
 (through :class:`northfinder.transport.SerialTransport`, the one logging place), and feeds it to
 :class:`northfinder.codecs.kvh.KvhDecoder`, which finds headers, checks CRCs, resyncs, decodes
@@ -105,7 +112,12 @@ class Imu(StreamReader):
         self._pending_n = 0
         self._config_mode = False
         self._text = bytearray()
+        self._listening = False  # collect text in `_text` (config mode, and while awaiting an echo)
         self._discard_next = 0
+        self._bit_messages: list[kvh.BitMessage] = []
+        self._bit_first_frame: list[bool] = []  # each BIT message: came before the first data frame
+        self._bit_carry = b""
+        self._bit_seen_until = 0  # stream offset after the last BIT message found
         self._start_reader()
         if wait_for_data:
             try:
@@ -187,8 +199,9 @@ class Imu(StreamReader):
     def _on_bytes(self, data: bytes, idle_s: float) -> None:
         if idle_s >= self.link_timeout_s and not self._config_mode and self._decoder.stats.frames:
             self._mark_stall = True
-        if self._config_mode:
+        if self._listening:
             self._text += data
+        self._find_bit_messages(data)
         out = self._decoder.feed(data)
         if len(out) and self._mark_stall:
             self._stalls.append(int(out.sample_index[0]))
@@ -207,6 +220,43 @@ class Imu(StreamReader):
             if len(index):
                 self._pending.append((index, frames))
                 self._pending_n += len(index)
+
+    def _find_bit_messages(self, data: bytes) -> None:
+        """BIT messages (manual §5.3) between the data frames: kept for :meth:`built_in_test`. The
+        decoder skips their bytes as it skips any non-frame bytes, so they cost no sample."""
+        buf = self._bit_carry + data
+        if kvh.BIT_HEADER[:3] not in buf:  # FE 81 00: both BIT headers; a data header is FE 81 FF
+            self._bit_carry = buf[-12:]
+            return
+        base = self._decoder.stats.bytes - len(self._bit_carry)  # stream offset of buf[0] (before feed)
+        for message, start in kvh.find_bit_messages(buf):
+            if base + start >= self._bit_seen_until:
+                self._bit_messages.append(message)
+                self._bit_first_frame.append(self._decoder.stats.frames == 0)
+                self._bit_seen_until = base + start + 1
+        self._bit_carry = buf[-12:]
+
+    @property
+    def bit_messages(self) -> list[kvh.BitMessage]:
+        """Every BIT message the unit sent so far (power-up, `?BIT` answers)."""
+        with self._cond:
+            return list(self._bit_messages)
+
+    def built_in_test(self, timeout_s: float | None = None) -> tuple[kvh.BitMessage, str]:
+        """The unit's BIT result → (message, "power-up" | "?BIT"). The power-up BIT message (sent
+        before the periodic data, manual §3.4) when the driver heard it; otherwise it asks with
+        ``?BIT``, which the manual allows in Normal Mode (§8.5: the answer follows the next data
+        message, typically within 100 ms)."""
+        with self._cond:
+            if self._bit_first_frame and self._bit_first_frame[0]:
+                return self._bit_messages[0], "power-up"
+            seen = len(self._bit_messages)
+        self._t.write(kvh.encode_query("BIT"))
+        wait_s = self.timeout_s if timeout_s is None else float(timeout_s)
+        with self._cond:
+            self._wait_locked(lambda: len(self._bit_messages) > seen, wait_s,
+                              lambda: f"no BIT message within {wait_s:g} s of ?BIT — is it a KVH 1750/1775?")
+            return self._bit_messages[seen], "?BIT"
 
     def _wait_for_first_frame(self) -> None:
         with self._cond:
@@ -300,19 +350,57 @@ class Imu(StreamReader):
             del self._text[:end]
             return value
 
+    def _command(self, key: str, value: object) -> None:
+        """Send ``=KEY,VALUE`` and wait for its echo (manual §7: "a positive feedback mechanism");
+        an ``INVALID,…`` or ``USAGE,…`` answer instead is a DeviceError saying which command the
+        unit refused and what it answered."""
+        with self._cond:
+            self._listening = True
+        self._t.write(kvh.encode_set(key, value))
+        found: list[tuple[int, str | None]] = []
+
+        def answered() -> bool:
+            text = bytes(self._text)
+            end = kvh.find_echo(text, key, value)
+            refusal = kvh.find_refusal(text, key)
+            # <=: 'INVALID,=DR,1\r\n' ends where the echo 'DR,1\r\n' would
+            if refusal is not None and (end is None or refusal[1] <= end):
+                found.append((refusal[1], refusal[0]))
+            elif end is not None:
+                found.append((end, None))
+            return bool(found)
+
+        with self._cond:
+            self._wait_locked(answered, self.timeout_s,
+                              lambda: f"no echo of ={key},{value} within {self.timeout_s:g} s — is it a "
+                              "KVH IMU in format A on this port?")
+            end, refusal = found[0]
+            del self._text[:end]
+        if refusal is not None:
+            raise DeviceError(DEVICE, self.port, f"the IMU refused ={key},{value} (it answered {refusal!r})")
+
     def _enter_config(self) -> None:
         with self._cond:
             self._config_mode = True
             self._text.clear()
-        self._t.write(kvh.encode_set("CONFIG", 1))
+        try:
+            self._command("CONFIG", 1)
+        except BaseException:
+            with self._cond:
+                self._config_mode = self._listening = False
+            raise
 
     def _leave_config(self, invalid_next: int = 0) -> None:
         with self._cond:
             self._pending, self._pending_n = [], 0
             self._discard_next = invalid_next
             self._config_mode = False
-            self._text.clear()
-        self._t.write(kvh.encode_set("CONFIG", 0))
+        try:
+            self._command("CONFIG", 0)  # data resumes right after the echo
+        finally:
+            with self._cond:
+                self._listening = False
+                self._text.clear()
 
     def query(self, key: str) -> str:
         """``?KEY`` → its value ("DR" → "1000").
@@ -365,11 +453,12 @@ class Imu(StreamReader):
         rate_changed = False
         try:
             if rate_hz is not None:
-                self._t.write(kvh.encode_set("DR", int(rate_hz)))
+                rate_changed = True  # the unit restarts its sample clock once it echoes
+                self._command("DR", int(rate_hz))
             if rot_format is not None:
-                self._t.write(kvh.encode_set("ROTFMT", rot_format.upper()))
+                self._command("ROTFMT", rot_format.upper())
             if rot_units is not None:
-                self._t.write(kvh.encode_set("ROTUNITS", rot_units.upper()))
+                self._command("ROTUNITS", rot_units.upper())
             values = {key: self.query(key) for key in ("DR", "ROTFMT", "ROTUNITS")}
             try:
                 new_rate = float(values["DR"])
