@@ -30,9 +30,10 @@ import pytest
 
 from northfinder.config import BenchConfig
 from northfinder.errors import ConfigError, DeviceError
+from northfinder.estimators.dwell import DISTURBANCE_Z, disturbance_z
 from northfinder.rundir import EVENTS, RESULT, RunDir, jsonable
 from northfinder.runs.find import replay
-from northfinder.sequencer import DISTURBANCE_Z, RunFailed, disturbance_z
+from northfinder.sequencer import RunFailed
 from northfinder.simulate import SimSettings, bench_config
 
 pytestmark = pytest.mark.slow
