@@ -166,6 +166,12 @@ class InertialStream(ABC):
         raise DeviceError(ROLE, self.port, "this IMU model cannot re-open its link")
 
     # -- built once on top -------------------------------------------------------------------
+    def check_line(self) -> str:
+        """`northfinder check`'s line for this device: what answered and what it says it is (a model
+        may say more: its state, its data)."""
+        ident = ", ".join(f"{k} {v}" for k, v in self.identity().items())
+        return f"{self.role} on {self.port}: {ident}"
+
     def has_gyro_z(self) -> bool:
         return "z" in self.axes.gyro
 

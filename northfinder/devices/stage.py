@@ -88,6 +88,12 @@ class RotaryStage(ABC):
     def close(self) -> None: ...
 
     # -- built once on top -------------------------------------------------------------------
+    def check_line(self) -> str:
+        """`northfinder check`'s line for this device: what answered and what it says it is (a model
+        may say more: its state, its data)."""
+        ident = ", ".join(f"{k} {v}" for k, v in self.identity().items())
+        return f"{self.role} on {self.port}: {ident}"
+
     def not_referenced_fault(self, state: StageState) -> StageFault:
         """The error for a stage that is not referenced while homing is not allowed."""
         exc = StageFault(ROLE, self.port, "the stage is not referenced and homing is disabled ([turntable] "

@@ -106,6 +106,12 @@ class TiltSensor(ABC):
         raise NotImplementedError
 
     # -- built once on top -------------------------------------------------------------------
+    def check_line(self) -> str:
+        """`northfinder check`'s line for this device: what answered and what it says it is (a model
+        may say more: its state, its data)."""
+        ident = ", ".join(f"{k} {v}" for k, v in self.identity().items())
+        return f"{self.role} on {self.port}: {ident}"
+
     def pause(self) -> None:
         """Quiet during a move."""
         self.stop_stream()

@@ -12,7 +12,7 @@ from northfinder.codecs.kvh import KvhDecoder, decode_imu_stream
 from northfinder.devices.imu import ImuBlock, ImuDecoder, InertialStream
 from northfinder.devices.registry import ModelSpec
 from northfinder.drivers.imu import Imu
-from northfinder.errors import InputError
+from northfinder.errors import DeviceError, InputError
 from northfinder.models._section import value
 
 
@@ -30,6 +30,20 @@ class KvhImu(Imu, InertialStream):
         self.configure()
         if rate_hz is not None and float(rate_hz) != self.rate_hz:
             self.configure(rate_hz=rate_hz)
+
+    def check_line(self) -> str:
+        """Rate and format read back, a tenth of a second of data, the axes from the status bits."""
+        rate, fmt, units = self.query("DR"), self.query("ROTFMT"), self.query("ROTUNITS")
+        block = self.read(max(2, int(self.rate_hz // 10)), timeout_s=3.0)
+        axes, stats = self.axes, self.stats
+        if "y" not in axes.gyro:
+            raise DeviceError("imu", self.port, f"{axes.describe()} (status bits): north finding needs a "
+                              "gyro y, or x and y — is it the right unit, mounted y along the table plane?")
+        settle = "settles by gyro z" if "z" in axes.gyro else "no gyro z: READY + [turntable] settle_s"
+        return (
+            f"imu on {self.port}: {rate} Hz, format A, {fmt} {units}; {axes.describe()} ({settle}); "
+            f"{len(block.sample_index)} samples read, {stats.bad_crc} bad CRC, {stats.lost_samples} lost"
+        )
 
     def reopen(self, timeout_s: float) -> int:
         return self.reconnect(timeout_s=timeout_s)

@@ -52,6 +52,12 @@ class Smc100Stage(Turntable, RotaryStage):
     def identity(self) -> dict[str, Any]:
         return {"model": "smc100", "version": self.version()}
 
+    def check_line(self) -> str:
+        st = self.status()
+        errors = ", ".join(st.error_names) if st.errors else "no errors"
+        return (f"turntable on {self.port}: {self.version()}; state {st.state_name} (0x{st.state:02X}), "
+                f"{errors}")
+
 
 def _open(section: Any, log_path: Any, options: dict[str, Any]) -> Smc100Stage:
     return Smc100Stage(value(section, "port", ""), address=value(section, "address", 1),
