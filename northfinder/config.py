@@ -322,9 +322,10 @@ def _validate_devices(cfg: BenchConfig, need: Callable[[bool, str, Any, str], No
     t, i, a = cfg.turntable, cfg.imu, cfg.accelerometer
     for role in registry.ROLES:
         name = getattr(cfg, role).model
-        models = registry.available(role)
-        need(name in models, f"[{role}] model", name,
-             f"use one of {', '.join(models)} (or install its package)")
+        if not registry.is_builtin(role, name):  # the installed packages are read only for another
+            models = registry.available(role)
+            need(name in models, f"[{role}] model", name,
+                 f"use one of {', '.join(models)} (or install its package)")
     need(1 <= t.address <= 31, "[turntable] address", t.address, "use 1…31")
     need(t.baudrate > 0, "[turntable] baudrate", t.baudrate, "use a positive baud rate")
     need(math.isfinite(t.speed_deg_s) and t.speed_deg_s >= 0, "[turntable] speed_deg_s", t.speed_deg_s,

@@ -78,6 +78,10 @@ def _load(target: str) -> ModelSpec:
     return getattr(importlib.import_module(module), attr)
 
 
+def is_builtin(role: str, name: str) -> bool:
+    return f"{role}/{name}" in BUILTIN
+
+
 def available(role: str) -> list[str]:
     """The model names of a role: the built-in ones, then the installed packages' (sorted)."""
     builtin = [k.split("/", 1)[1] for k in BUILTIN if k.startswith(role + "/")]
