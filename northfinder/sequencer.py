@@ -448,7 +448,8 @@ class Sequencer:
     def _read_accel(self, n: int) -> AccelBlock:
         return self.accel.read_samples(n, self.limits.read_timeout_s)
 
-    def dwell(self, index: int, target_deg: float, settle_s: float = 0.0) -> tuple[list[Any], Any]:
+    def dwell(self, index: int, target_deg: float,
+              settle_s: float = 0.0) -> tuple[list[ImuBlock], AccelBlock]:
         """Collect dwell_s·rate IMU samples right after settling (in chunks, reporting live
         statistics), then dwell_s·rate accelerometer samples: those after its NMT start at READY,
         less the first settle_s·rate of them (`SettleResult.rest_before_dwell_s`).
@@ -567,25 +568,8 @@ class Sequencer:
         n = len(self._plan)
         reasons: list[str] = []
         for attempt in range(1, self.limits.max_attempts + 1):
-            self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
             try:
-                here = float(self.turntable.angle_deg())
-                self._move_deg = target - here
-                # homing's motion, not yet seen in the IMU data, counts as part of the first move;
-                # the data since the home command are kept for that (discarded before it)
-                travel_deg = abs(self._move_deg) + self._homing_travel_deg
-                self.accel.pause()  # quiet during the move; started again after the settle
-                if not self._homing_travel_deg:
-                    self.imu.discard_pending()  # what is left is from before the move command
-                self._move(target)
-                self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
-                # at READY: its first samples are skipped by the settle time
-                self.accel.resume(self._check_stop, self._event)
-                settle = self.settle(expect_motion=travel_deg >= MIN_VISIBLE_MOVE_DEG, move_deg=travel_deg)
-                self._homing_travel_deg = 0.0
-                hb0, emcy0 = self.accel.counts()
-                blocks, accel_block = self.dwell(i, target, settle.rest_before_dwell_s)
-                hb1, emcy1 = self.accel.counts()
+                settle, blocks, accel_block, counts = self._attempt(i, target)
             except StageFault:
                 raise  # _move already retried once
             except DeviceError as exc:
@@ -600,21 +584,11 @@ class Sequencer:
                     self._check_stop()
                     angle_deg = float(self.turntable.angle_deg())
                     self._flush_logs()
-                    extra = {"attempt": attempt, "heartbeats": hb1 - hb0, "emcy": emcy1 - emcy0}
+                    extra = {"attempt": attempt, "heartbeats": counts[0], "emcy": counts[1]}
                     means = self._record(i, target, angle_deg, settle, blocks, accel_block, extra)
-                    self.on_progress(
-                        Progress(
-                            i + 1,
-                            n,
-                            "measured",
-                            target,
-                            dwell_done_s=self.run_cfg.dwell_s,
-                            dwell_s=self.run_cfg.dwell_s,
-                            gyro_mean_dph=means.gyro_dph,
-                            settle_s=settle.settle_s,
-                            means=means,
-                        )
-                    )
+                    self.on_progress(Progress(i + 1, n, "measured", target, dwell_done_s=self.run_cfg.dwell_s,
+                                              dwell_s=self.run_cfg.dwell_s, gyro_mean_dph=means.gyro_dph,
+                                              settle_s=settle.settle_s, means=means))
                     return means
                 reason = "; ".join(problems)
             reasons.append(reason)
@@ -627,6 +601,31 @@ class Sequencer:
             f"last: {reasons[-1]}",
             list(self.positions),
         )
+
+    def _attempt(self, i: int,
+                 target: float) -> tuple[SettleResult, list[ImuBlock], AccelBlock, tuple[int, int]]:
+        """One measurement of a position: move (the tilt sensor paused), settle, dwell; the tilt
+        sensor's status and fault reports during the dwell."""
+        n = len(self._plan)
+        self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
+        here = float(self.turntable.angle_deg())
+        self._move_deg = target - here
+        # homing's motion, not yet seen in the IMU data, counts as part of the first move;
+        # the data since the home command are kept for that (discarded before it)
+        travel_deg = abs(self._move_deg) + self._homing_travel_deg
+        self.accel.pause()  # quiet during the move; started again after the settle
+        if not self._homing_travel_deg:
+            self.imu.discard_pending()  # what is left is from before the move command
+        self._move(target)
+        self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
+        # at READY: its first samples are skipped by the settle time
+        self.accel.resume(self._check_stop, self._event)
+        settle = self.settle(expect_motion=travel_deg >= MIN_VISIBLE_MOVE_DEG, move_deg=travel_deg)
+        self._homing_travel_deg = 0.0
+        hb0, emcy0 = self.accel.counts()
+        blocks, accel_block = self.dwell(i, target, settle.rest_before_dwell_s)
+        hb1, emcy1 = self.accel.counts()
+        return settle, blocks, accel_block, (hb1 - hb0, emcy1 - emcy0)
 
     def _reconnect_imu(self, i: int, exc: DeviceError) -> bool:
         """After a failed IMU read: re-open its link if it vanished (InertialStream.recover) and log how
@@ -667,8 +666,8 @@ class Sequencer:
         target: float,
         angle_deg: float,
         settle: SettleResult,
-        blocks: list[Any],
-        accel_block: Any,
+        blocks: list[ImuBlock],
+        accel_block: AccelBlock,
         extra: dict[str, Any] | None = None,
     ) -> PositionMeans:
         idx = np.concatenate([np.asarray(b.sample_index) for b in blocks])

@@ -22,14 +22,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from northfinder.devices import registry
 from northfinder.errors import DeviceError
 from northfinder.rundir import CONFIG, RunDir
 from northfinder.runs import base
 from northfinder.runs import gnss as gr
-from northfinder.simulate import SimulatorProcess, firmware_sim_argv
+from northfinder.simulate import SimScenario, SimulatorProcess
 from northfinder.stopflag import StopFlag
 
 SIM_IMU_RATE_HZ = 250
@@ -40,8 +40,20 @@ SIM_LEVER_ARM_M = (0.5, 1.5, 1.2)
 
 
 @dataclass
-class VehicleSim:
-    """firmware-sim's vehicle scenario: the knobs passed on, the command line built from them."""
+class VehicleSim(SimScenario):
+    """firmware-sim's vehicle scenario: the knobs passed on (simulate.SimScenario builds the command
+    line and the record)."""
+
+    scenario: ClassVar[str | None] = "vehicle"
+    FLAGS: ClassVar[tuple[tuple[str, str, str], ...]] = (
+        ("lever_arm_m", "--lever-arm", ""), ("imu_rate_hz", "--imu-rate", "int"), ("grade", "--grade", ""),
+        ("seed", "--seed", "int"), ("time_scale", "--time-scale", "float"),
+        ("latitude_deg", "--latitude", "float"),
+        ("heading_deg", "--heading", "float"), ("truth_log", "--truth-log", "opt"),
+        ("link_latency", "--link-latency", "opt"),
+    )
+    RECORDED: ClassVar[tuple[str, ...]] = ("lever_arm_m", "grade", "seed", "time_scale", "imu_rate_hz",
+                                           "latitude_deg", "heading_deg", "faults", "link_latency")
 
     lever_arm_m: tuple[float, float, float] = SIM_LEVER_ARM_M
     grade: str = "kvh1760"
@@ -55,37 +67,6 @@ class VehicleSim:
     link_latency: str | None = None
     """firmware-sim's `--link-latency` ("MS,JITTER_MS" or "imu=MS:J,gnss=MS:J", device ms): the
     links deliver late and jittery, as USB-serial adapters on a busy host do."""
-
-    def argv(self) -> list[str]:
-        return firmware_sim_argv(
-            {
-                "--scenario": "vehicle",
-                "--lever-arm": self.lever_arm_m,
-                "--imu-rate": int(self.imu_rate_hz),
-                "--grade": self.grade,
-                "--seed": int(self.seed),
-                "--time-scale": float(self.time_scale),
-                "--latitude": None if self.latitude_deg is None else float(self.latitude_deg),
-                "--heading": None if self.heading_deg is None else float(self.heading_deg),
-                "--truth-log": self.truth_log or None,
-                "--link-latency": self.link_latency or None,
-            },
-            self.faults,
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "scenario": "vehicle",
-            "lever_arm_m": list(self.lever_arm_m),
-            "grade": self.grade,
-            "seed": self.seed,
-            "time_scale": self.time_scale,
-            "imu_rate_hz": self.imu_rate_hz,
-            "latitude_deg": self.latitude_deg,
-            "heading_deg": self.heading_deg,
-            "faults": list(self.faults),
-            "link_latency": self.link_latency,
-        }
 
 
 class VehicleSimProcess(SimulatorProcess):

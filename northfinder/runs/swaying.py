@@ -27,7 +27,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -46,7 +46,7 @@ from northfinder.errors import DeviceError, InputError
 from northfinder.report import report_axes, save_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
 from northfinder.runs import base
-from northfinder.simulate import SimulatorProcess, firmware_sim_argv
+from northfinder.simulate import SimScenario, SimulatorProcess
 from northfinder.stopflag import StopFlag
 
 KIND = "align-swaying"
@@ -126,8 +126,18 @@ def longest_period_s(sway: dict[str, list[list[float]]], default_s: float = DEFA
 # firmware-sim's ship scenario as a subprocess
 # ---------------------------------------------------------------------------------------------
 @dataclass
-class ShipSim:
+class ShipSim(SimScenario):
     """firmware-sim `--scenario ship`: the IMU alone at a lever arm on a swaying ship."""
+
+    scenario: ClassVar[str | None] = "ship"
+    FLAGS: ClassVar[tuple[tuple[str, str, str], ...]] = (
+        ("sway", "--sway", ""), ("lever_arm_m", "--lever-arm", ""), ("heading_deg", "--heading", "float"),
+        ("latitude_deg", "--latitude", "float"), ("grade", "--grade", ""), ("seed", "--seed", "int"),
+        ("time_scale", "--time-scale", "float"), ("truth_log", "--truth-log", "opt"),
+        ("config", "--config", "opt"),
+    )
+    RECORDED: ClassVar[tuple[str, ...]] = ("sway", "lever_arm_m", "heading_deg", "latitude_deg", "grade",
+                                           "seed", "time_scale", "faults")
 
     sway: str = REFERENCE_SWAY
     lever_arm_m: tuple[float, float, float] = SIM_LEVER_ARM_M
@@ -140,36 +150,6 @@ class ShipSim:
     truth_log: str | None = None
     config: str | None = None
     """A firmware-sim TOML for the keys without a flag (e.g. imu_variant); the flags win."""
-
-    def argv(self) -> list[str]:
-        return firmware_sim_argv(
-            {
-                "--scenario": "ship",
-                "--sway": self.sway,
-                "--lever-arm": self.lever_arm_m,
-                "--heading": float(self.heading_deg),
-                "--latitude": float(self.latitude_deg),
-                "--grade": self.grade,
-                "--seed": int(self.seed),
-                "--time-scale": float(self.time_scale),
-                "--truth-log": self.truth_log or None,
-                "--config": self.config or None,
-            },
-            self.faults,
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "scenario": "ship",
-            "sway": self.sway,
-            "lever_arm_m": list(self.lever_arm_m),
-            "heading_deg": self.heading_deg,
-            "latitude_deg": self.latitude_deg,
-            "grade": self.grade,
-            "seed": self.seed,
-            "time_scale": self.time_scale,
-            "faults": list(self.faults),
-        }
 
 
 class ShipSimProcess(SimulatorProcess):
