@@ -65,10 +65,8 @@ class RunContext:
         return self.progress(positions, dwell_s)
 
     def finish(self, result: dict[str, Any]) -> None:
-        """Save the result: result.json, the extra JSON if asked, report.png if asked."""
-        self.rundir.write_json(RESULT, result)
-        if self.json_path:
-            RunDir(Path(self.json_path).parent).write_json(Path(self.json_path).name, result)
+        """Save the result: result.json and the extra JSON if asked (write_result), report.png if asked."""
+        write_result(self.rundir, result, self.json_path)
         if self.report:
             from northfinder.report import write_report  # matplotlib: only when drawing
 
@@ -266,7 +264,8 @@ def abort_or(stop: StopFlag, rd: RunDir, what: str) -> Exception:
 
 
 def write_result(rd: RunDir, result: dict[str, Any], json_path: str | None) -> None:
-    """result.json in the run directory, and a copy at --json PATH if given."""
+    """result.json in the run directory, and a copy at --json PATH if given: the one writer of a
+    run's result (every kind of run saves through it)."""
     rd.write_json(RESULT, result)
     if json_path:
         RunDir(Path(json_path).parent).write_json(Path(json_path).name, result)
