@@ -16,7 +16,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from northfinder.config import BenchConfig
 from northfinder.errors import DeviceError, InputError
@@ -47,9 +47,54 @@ def firmware_sim_argv(options: dict[str, Any], faults: Sequence[str] = ()) -> li
     return out
 
 
+def _flag_value(value: Any, kind: str) -> Any:
+    """A field as its flag takes it: "float"/"int" (None stays None), "opt" (empty → left out)."""
+    if kind == "float":
+        return None if value is None else float(value)
+    if kind == "int":
+        return None if value is None else int(value)
+    if kind == "opt":
+        return value or None
+    return value
+
+
+class SimScenario:
+    """The one simulator-settings type: a scenario's settings (a dataclass subclass) say which field
+    goes to which firmware-sim flag (`FLAGS`: field, flag, kind) and what a run records of them
+    (`RECORDED`); the command line and the record are built here, once."""
+
+    scenario: ClassVar[str | None] = None
+    """firmware-sim's --scenario; None for its default, the bench."""
+    FLAGS: ClassVar[tuple[tuple[str, str, str], ...]] = ()
+    RECORDED: ClassVar[tuple[str, ...]] = ()
+    faults: Sequence[str]
+
+    def argv(self) -> list[str]:
+        """The firmware-sim command line for these settings."""
+        options: dict[str, Any] = {"--scenario": self.scenario} if self.scenario else {}
+        for name, flag, kind in self.FLAGS:
+            options[flag] = _flag_value(getattr(self, name), kind)
+        return firmware_sim_argv(options, self.faults)
+
+    def to_dict(self) -> dict[str, Any]:
+        """What config.json and the start event record of the simulated run."""
+        out: dict[str, Any] = {"scenario": self.scenario}
+        for name in self.RECORDED:
+            value = getattr(self, name)
+            out[name] = list(value) if isinstance(value, tuple | list) else value
+        return out
+
+
 @dataclass
-class SimSettings:
-    """The truth and the knobs passed on to firmware-sim (degrees at the edge)."""
+class SimSettings(SimScenario):
+    """The bench scenario: the truth and the knobs passed on to firmware-sim (degrees at the edge)."""
+
+    FLAGS: ClassVar[tuple[tuple[str, str, str], ...]] = (
+        ("heading_deg", "--heading", "float"), ("pitch_deg", "--pitch", "float"),
+        ("roll_deg", "--roll", "float"),
+        ("latitude_deg", "--latitude", "float"), ("grade", "--grade", ""), ("seed", "--seed", "int"),
+        ("time_scale", "--time-scale", "float"), ("config", "--config", "opt"), ("can", "--can", "opt"),
+    )
 
     heading_deg: float = 37.0
     pitch_deg: float = 1.5
@@ -62,23 +107,6 @@ class SimSettings:
     config: str | None = None
     can: str | None = None
     """Where firmware-sim puts its CAN node, INTERFACE[:CHANNEL] (None: its slcan adapter on a pty)."""
-
-    def argv(self) -> list[str]:
-        """The firmware-sim command line for these settings."""
-        return firmware_sim_argv(
-            {
-                "--heading": float(self.heading_deg),
-                "--pitch": float(self.pitch_deg),
-                "--roll": float(self.roll_deg),
-                "--latitude": float(self.latitude_deg),
-                "--grade": self.grade,
-                "--seed": int(self.seed),
-                "--time-scale": float(self.time_scale),
-                "--config": self.config or None,
-                "--can": self.can or None,
-            },
-            self.faults,
-        )
 
     def truth(self) -> dict[str, float]:
         return {

@@ -22,13 +22,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
+from northfinder.devices import registry
 from northfinder.errors import DeviceError
 from northfinder.rundir import CONFIG, RunDir
 from northfinder.runs import base
 from northfinder.runs import gnss as gr
-from northfinder.simulate import SimulatorProcess, firmware_sim_argv
+from northfinder.simulate import SimScenario, SimulatorProcess
 from northfinder.stopflag import StopFlag
 
 SIM_IMU_RATE_HZ = 250
@@ -39,8 +40,20 @@ SIM_LEVER_ARM_M = (0.5, 1.5, 1.2)
 
 
 @dataclass
-class VehicleSim:
-    """firmware-sim's vehicle scenario: the knobs passed on, the command line built from them."""
+class VehicleSim(SimScenario):
+    """firmware-sim's vehicle scenario: the knobs passed on (simulate.SimScenario builds the command
+    line and the record)."""
+
+    scenario: ClassVar[str | None] = "vehicle"
+    FLAGS: ClassVar[tuple[tuple[str, str, str], ...]] = (
+        ("lever_arm_m", "--lever-arm", ""), ("imu_rate_hz", "--imu-rate", "int"), ("grade", "--grade", ""),
+        ("seed", "--seed", "int"), ("time_scale", "--time-scale", "float"),
+        ("latitude_deg", "--latitude", "float"),
+        ("heading_deg", "--heading", "float"), ("truth_log", "--truth-log", "opt"),
+        ("link_latency", "--link-latency", "opt"),
+    )
+    RECORDED: ClassVar[tuple[str, ...]] = ("lever_arm_m", "grade", "seed", "time_scale", "imu_rate_hz",
+                                           "latitude_deg", "heading_deg", "faults", "link_latency")
 
     lever_arm_m: tuple[float, float, float] = SIM_LEVER_ARM_M
     grade: str = "kvh1760"
@@ -54,37 +67,6 @@ class VehicleSim:
     link_latency: str | None = None
     """firmware-sim's `--link-latency` ("MS,JITTER_MS" or "imu=MS:J,gnss=MS:J", device ms): the
     links deliver late and jittery, as USB-serial adapters on a busy host do."""
-
-    def argv(self) -> list[str]:
-        return firmware_sim_argv(
-            {
-                "--scenario": "vehicle",
-                "--lever-arm": self.lever_arm_m,
-                "--imu-rate": int(self.imu_rate_hz),
-                "--grade": self.grade,
-                "--seed": int(self.seed),
-                "--time-scale": float(self.time_scale),
-                "--latitude": None if self.latitude_deg is None else float(self.latitude_deg),
-                "--heading": None if self.heading_deg is None else float(self.heading_deg),
-                "--truth-log": self.truth_log or None,
-                "--link-latency": self.link_latency or None,
-            },
-            self.faults,
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "scenario": "vehicle",
-            "lever_arm_m": list(self.lever_arm_m),
-            "grade": self.grade,
-            "seed": self.seed,
-            "time_scale": self.time_scale,
-            "imu_rate_hz": self.imu_rate_hz,
-            "latitude_deg": self.latitude_deg,
-            "heading_deg": self.heading_deg,
-            "faults": list(self.faults),
-            "link_latency": self.link_latency,
-        }
 
 
 class VehicleSimProcess(SimulatorProcess):
@@ -129,16 +111,13 @@ class Window:
     stop: StopFlag
 
 
-def _open_gnss(rd: RunDir, port: str, baudrate: int) -> contextlib.AbstractContextManager[Any]:
+def _open_gnss(rd: RunDir, port: str, baudrate: int, model: str) -> contextlib.AbstractContextManager[Any]:
     """The NMEA receiver with its raw log (gnss.nmea) and host receive stamps (gnss.rx)."""
-    from northfinder.drivers.gnss import Gnss
-
     return base.guard(
         "gnss",
         port,
-        lambda: Gnss(
-            port,
-            timeout_s=5.0,
+        lambda: registry.open_device(
+            "gnss", {"model": model, "port": port, "baudrate": baudrate}, None,
             transport=_stamped("gnss", port, baudrate, rd.file(gr.GNSS_NMEA), rd.file(gr.GNSS_RX)),
         ),
     )
@@ -215,6 +194,8 @@ def acquire(
     filter_settings: dict[str, Any],
     imu_baudrate: int = 921600,
     gnss_baudrate: int = 115200,
+    imu_model: str = "",
+    gnss_model: str = "",
     configure_imu: bool = False,
     simulate: dict[str, Any] | None = None,
     gnss_start_utc: str | None = None,
@@ -225,8 +206,6 @@ def acquire(
 ) -> Window:
     """Read both devices for `duration_s` device seconds; the raw logs, stamps and events are saved
     in the run directory. A signal ends the reading early (`Window.stop` says which)."""
-    from northfinder.drivers.imu import Imu
-
     rd.write_json(CONFIG, {"kind": gr.KIND, "simulate": simulate, "argv": sys.argv, **(config_extra or {})})
     stop = StopFlag()
     blocks: list[Any] = []
@@ -236,8 +215,8 @@ def acquire(
             base.guard(
                 "imu",
                 imu_port,
-                lambda: Imu(
-                    imu_port,
+                lambda: registry.open_device(
+                    "imu", {"model": imu_model, "port": imu_port}, None,
                     rate_hz=imu_rate_hz,
                     rot_format=rot_format,
                     rot_units=rot_units,
@@ -247,14 +226,14 @@ def acquire(
             )
         )
         if configure_imu:
-            imu.configure()  # read the rate and gyro format back: the decoder must know them
-        gnss = stack.enter_context(_open_gnss(rd, gnss_port, gnss_baudrate))
+            imu.configure_for_run(None)  # read the rate and gyro format back: the decoder must know them
+        gnss = stack.enter_context(_open_gnss(rd, gnss_port, gnss_baudrate, gnss_model))
         start = base.start_event(
             gr.KIND,
             duration_s,
             imu_port,
             imu,
-            gnss={"port": gnss_port},
+            gnss={"port": gnss_port, "model": gnss.model_name},
             filter=filter_settings,
             simulate=simulate,
             time_scale=time_scale,
