@@ -15,6 +15,10 @@ Ports are pyserial URLs: a device path (``/dev/ttyUSB0``, ``/dev/pts/3``), ``soc
 A port that does not exist, is busy or cannot be opened raises
 :class:`northfinder.errors.DeviceError` naming the port and saying what to do.
 
+The CAN side of the transports is :func:`open_can_bus`: python-can's ``can.Bus`` except that an
+``slcan`` bus is a :class:`ChunkedSlcanBus`, the stock client reading every waiting byte at once
+(see its docstring; dropped when python-can releases the same change).
+
 Example::
 
     with SerialTransport("/dev/pts/3", device="turntable", baudrate=57600,
@@ -27,16 +31,21 @@ from __future__ import annotations
 
 import errno
 import io
+import re
 import threading
 import time
 from pathlib import Path
 from typing import IO, Any, BinaryIO, TextIO
 
+import can
 import serial
+from can.exceptions import error_check
+from can.interfaces.slcan import slcanBus
 
 from northfinder.errors import DeviceError
 
-__all__ = ["SerialTransport", "is_local_path", "open_serial"]
+__all__ = ["SLCAN_STOCK_READS_BYTEWISE", "ChunkedSlcanBus", "SerialTransport", "is_local_path",
+           "open_can_bus", "open_serial"]
 
 
 def is_local_path(url: str) -> bool:
@@ -294,3 +303,75 @@ class StampedTransport:
         finally:
             if not self._fh.closed:
                 self._fh.close()
+
+
+# --------------------------------------------------------------------------------------------
+# CAN: the slcan client read in chunks
+
+
+def _release(version: str) -> tuple[int, ...]:
+    """``"4.6.1"`` → ``(4, 6, 1)``; a suffix is dropped (``"4.7.0rc1"`` → ``(4, 7, 0)``)."""
+    head = re.match(r"\d+(?:\.\d+)*", version)
+    return tuple(int(p) for p in head.group(0).split(".")) if head else ()
+
+
+LAST_BYTEWISE_PYTHON_CAN = (4, 6, 1)
+"""The newest python-can release whose slcan client reads one byte per pyserial call (issue #2027;
+fixed on python-can's main branch by pull request #2028, merged 2026-02, in no release yet)."""
+
+SLCAN_STOCK_READS_BYTEWISE = _release(can.__version__) <= LAST_BYTEWISE_PYTHON_CAN
+"""True while the installed python-can needs :class:`ChunkedSlcanBus`. tests/test_slcan_chunked.py
+measures the stock client's reads per frame and fails, saying "drop ChunkedSlcanBus", once a
+release reads in chunks."""
+
+
+class ChunkedSlcanBus(slcanBus):
+    """python-can's slcan client with its receive path reading every waiting byte in one call.
+
+    The stock ``_read`` (python-can ≤ 4.6.1) calls ``serial.read(1)`` once per byte — about 22
+    calls for a 22-byte TPDO line, each a syscall, which caps the client at ~8 k frames/s and was
+    most of the find's CPU at high time scales (issue 27). This override does what python-can's
+    pull request #2028 does upstream: read ``max(1, in_waiting)`` bytes at once into the same
+    ``_buffer`` and hand back one line at a time, up to and including its first terminator
+    (``\\r`` for a frame or an OK, ``\\a`` for an error, as in the Lawicel protocol), keeping the
+    rest for the next call. Lines, and so frames, are the same as the stock client's on the same
+    bytes (tests/test_slcan_chunked.py). Everything else (open, bitrate, send, shutdown,
+    get_version, the line parser in ``_recv_internal``) is the stock class's.
+    """
+
+    def _take_line(self) -> str | None:
+        """The first whole line in the buffer (terminator included), removed from it; or None."""
+        buf = self._buffer
+        end = buf.find(self._OK)
+        error = buf.find(self._ERROR, 0, end if end >= 0 else len(buf))
+        if error >= 0:
+            end = error
+        if end < 0:
+            return None
+        line = buf[: end + 1].decode()
+        del buf[: end + 1]
+        return line
+
+    def _read(self, timeout: float | None) -> str | None:
+        deadline = serial.Timeout(timeout)
+        port = self.serialPortOrig
+        while True:
+            line = self._take_line()
+            if line is not None:
+                return line
+            with error_check("Could not read from serial device"):
+                # in_waiting bytes are there: read returns them at once; none waiting: read(1)
+                # blocks up to the port's own timeout (1 ms by default), as the stock client does
+                chunk = port.read(max(1, port.in_waiting))
+            if chunk:
+                self._buffer.extend(chunk)
+            elif deadline.expired():
+                return None
+
+
+def open_can_bus(interface: str, channel: str | int | None, *, bitrate: int, **options: Any) -> can.BusABC:
+    """``can.Bus(interface=…, channel=…, bitrate=…, **options)``, except that ``slcan`` opens a
+    :class:`ChunkedSlcanBus` while the installed python-can reads slcan one byte at a time."""
+    if interface == "slcan" and SLCAN_STOCK_READS_BYTEWISE:
+        return ChunkedSlcanBus(channel=channel, bitrate=bitrate, **options)
+    return can.Bus(interface=interface, channel=channel, bitrate=bitrate, **options)

@@ -1,10 +1,15 @@
 """The layers are a contract checked by a tool: import-linter's `lint-imports` with the contracts in
 pyproject.toml (northfinder's layers, northfinder ⇄ firmware_sim independence, firmware_sim's own
 SDO server, pure estimators/align/codecs). A second test breaks a layer on a copy of the tree and
-shows the tool catches it, so the first test cannot pass by checking nothing."""
+shows the tool catches it, so the first test cannot pass by checking nothing.
+
+The tool runs in this interpreter (``sys.executable``, import-linter's own command function), so
+the venv's import-linter is used whether or not its bin is on PATH; skipped only when import-linter
+is not installed at all."""
 
 from __future__ import annotations
 
+import importlib.util
 import shutil
 import subprocess
 import sys
@@ -13,9 +18,12 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-LINT_IMPORTS = shutil.which("lint-imports")
+# `lint-imports` is import-linter's console script for this function; the package has no __main__
+LINT_IMPORTS = [sys.executable, "-c", "import sys; from importlinter.cli import lint_imports_command; "
+                "sys.exit(lint_imports_command())"]
 needs_tool = pytest.mark.skipif(
-    LINT_IMPORTS is None, reason="import-linter is not installed (pip install -e '.[test]')"
+    importlib.util.find_spec("importlinter") is None,
+    reason="import-linter is not installed (pip install -e '.[test]')",
 )
 
 
@@ -23,7 +31,7 @@ def _lint(cwd: Path) -> subprocess.CompletedProcess[str]:
     # the copy's packages must win over the editable install: put the copy first on sys.path
     env = {"PYTHONPATH": str(cwd), "PATH": str(Path(sys.executable).parent) + ":/usr/bin:/bin"}
     return subprocess.run(
-        [LINT_IMPORTS, "--no-cache"], cwd=cwd, capture_output=True, text=True, env=env, timeout=120
+        [*LINT_IMPORTS, "--no-cache"], cwd=cwd, capture_output=True, text=True, env=env, timeout=120
     )
 
 

@@ -7,9 +7,10 @@ Rows:
   seed), pinned to one core: frames per second of wall and of CPU time, and the multiple of the
   1 kHz real-time rate (whole buffer = replay; 4096-byte chunks = what the driver's reader sees).
 * **CAN path** — cantools decode + TPDO pairing (:class:`AccelFrameDecoder`), frames/s against
-  the 200 frames/s of 100 Hz pairs; and python-can's own slcan client receiving TPDO lines from a
-  pty (it reads one byte per pyserial call: the accelerometer link's ceiling, which limits the
-  time-scaled runs below).
+  the 200 frames/s of 100 Hz pairs; and slcan clients receiving TPDO lines from a pty: python-can's
+  own (one byte per pyserial call, python-can issue #2027) and the one northfinder opens,
+  :class:`northfinder.transport.ChunkedSlcanBus` (every waiting byte at once): the accelerometer
+  link's ceiling, which limits the time-scaled runs below.
 * **Driver CPU at 1 kHz real time** — ``python -m firmware_sim --time-scale 1`` as a subprocess,
   :class:`northfinder.drivers.imu.Imu` reading ~10 s: this process's CPU (``time.process_time``,
   every thread) and the simulator's (``/proc/<pid>/stat``), as % of one core.
@@ -60,6 +61,7 @@ from northfinder.codecs.canopen import AccelFrameDecoder, CanCodec  # noqa: E402
 from northfinder.drivers.imu import Imu  # noqa: E402
 from northfinder.estimators import montecarlo as mc  # noqa: E402
 from northfinder.estimators.heading import solve_batch  # noqa: E402
+from northfinder.transport import ChunkedSlcanBus  # noqa: E402
 
 REAL_TIME_HZ = 1000.0
 ENV = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -184,18 +186,21 @@ def bench_can(n_pairs: int = 5000) -> Row:
                f"real time = 200 frames/s (100 Hz pairs); CPU: {k / cpu_s:,.0f} frames/s")
 
 
-def bench_slcan_client(n_frames: int = 20_000) -> Row:
-    """python-can's own slcan client receiving TPDO lines from a pty as fast as it can: the ceiling
-    of the accelerometer link (it reads one byte per pyserial call, python-can issue #2027)."""
+def bench_slcan_client(bus_class: type | None = None, n_frames: int = 20_000) -> Row:
+    """An slcan client receiving TPDO lines from a pty as fast as it can: the ceiling of the
+    accelerometer link. `bus_class` None is python-can's stock client (one byte per pyserial call,
+    python-can issue #2027); northfinder opens :class:`northfinder.transport.ChunkedSlcanBus`
+    (tools/slcan_speed.py compares the two in more detail)."""
     import tty
 
-    import can
+    from can.interfaces.slcan import slcanBus
 
+    bus_class = bus_class or slcanBus
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
     line = b"t1908E803000030F8FFFF\r"
-    bus = can.Bus(interface="slcan", channel=os.ttyname(slave), bitrate=500000, sleep_after_open=0)
+    bus = bus_class(channel=os.ttyname(slave), bitrate=500000, sleep_after_open=0)
     try:
         with contextlib.suppress(BlockingIOError):
             os.set_blocking(master, False)
@@ -213,7 +218,8 @@ def bench_slcan_client(n_frames: int = 20_000) -> Row:
         bus.shutdown()
         os.close(master)
         os.close(slave)
-    return Row("python-can slcan client, receive",
+    label = "python-can slcan client" if bus_class is slcanBus else bus_class.__name__
+    return Row(f"{label}, receive",
                f"{got / wall:,.0f} frames/s = {got / wall / 200:,.0f}× real time",
                f"CPU: {got / cpu:,.0f} frames/s; {len(line)}-byte TPDO lines from a pty; the sim needs "
                f"200 frames/s × time scale")
@@ -532,6 +538,7 @@ def main() -> int:
     rows = bench_decoder(args.frames, args.chunk_bytes)
     rows.append(bench_can())
     rows.append(bench_slcan_client())
+    rows.append(bench_slcan_client(ChunkedSlcanBus))
     rows.append(bench_driver_cpu(args.driver_s))
     for k in [float(x) for x in args.imu_scales.split(",") if x.strip()]:
         rows.append(bench_driver_cpu(max(2.0, args.driver_s / 2), k))

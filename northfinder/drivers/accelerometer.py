@@ -66,6 +66,7 @@ from northfinder.codecs.canopen import (
 )
 from northfinder.drivers._stream import wait_until
 from northfinder.errors import DeviceError
+from northfinder.transport import open_can_bus
 
 __all__ = ["DEFAULT_EDS_PATH", "Accelerometer", "AccelBlock", "AccelStats", "Emcy", "decode_can_log",
            "samples_to_block"]
@@ -246,7 +247,7 @@ class Accelerometer:
         if bus is None:
             try:
                 options = dict(bus_options or {})
-                bus = can.Bus(interface=interface, channel=channel, bitrate=self.bitrate, **options)
+                bus = open_can_bus(interface, channel, bitrate=self.bitrate, **options)
             except Exception as exc:  # noqa: BLE001 - python-can raises many types; all are the user's setup
                 raise DeviceError(
                     DEVICE, self.port,

@@ -297,3 +297,201 @@ def fit_motion_screened(
             return fit, keep, dropped
         keep &= ~worst
         dropped += 1
+
+
+# --------------------------------------------------------------------------------------------
+# The same fit from the samples as they arrive: memory flat in run length (issue 27, item 5)
+
+_CHUNK_ROWS = 8192
+"""Rows folded into a stretch's triangular factor at a time (bounds the transient design)."""
+
+
+def _fold(r_mat: np.ndarray | None, rows: np.ndarray) -> np.ndarray:
+    """The triangular factor R of [r_mat; rows] (QR, R only): RᵀR = r_matᵀr_mat + rowsᵀrows."""
+    stacked = rows if r_mat is None else np.vstack([r_mat, rows])
+    return np.linalg.qr(stacked, mode="r")
+
+
+class _Stretch:
+    """One rest or motion stretch as the fit sees it: per axis the triangular factor R_j of its
+    rows [A_j | y_j] (the design's axis-j block and that axis's gyro), and its sample count. Then
+    ‖A_j·x − y_j‖² = ‖R_j·[x; −1]‖² for any x — residuals need no samples."""
+
+    __slots__ = ("factors", "motion", "n")
+
+    def __init__(self, motion: bool, n_axes: int) -> None:
+        self.motion = motion
+        self.n = 0
+        self.factors: list[np.ndarray | None] = [None] * n_axes
+
+    def add(self, alpha_deg, omega_dps, gyro_dph, axes, terms) -> None:
+        for lo in range(0, len(alpha_deg), _CHUNK_ROWS):
+            hi = lo + _CHUNK_ROWS
+            a_mat, _ = motion_design(alpha_deg[lo:hi], omega_dps[lo:hi], axes, terms)
+            m = min(hi, len(alpha_deg)) - lo
+            for j in range(len(axes)):
+                rows = np.column_stack([a_mat[j * m : (j + 1) * m], gyro_dph[lo:hi, j]])
+                self.factors[j] = _fold(self.factors[j], rows)
+            self.n += m
+
+    def sq_residual(self, x_aug: np.ndarray) -> np.ndarray:
+        """Σ over the stretch's samples of the squared residual at coefficients x, per axis."""
+        return np.array([float(np.sum((f @ x_aug) ** 2)) if f is not None else 0.0 for f in self.factors])
+
+
+class MotionFitAccumulator:
+    """place_samples + fit_motion_screened fed the run as it arrives, holding per rest or motion
+    stretch only a small triangular factor (docs/estimators.md §10; issue 27 item 5).
+
+    `add_samples(sample_index, gyro_dph)` takes the IMU stream in time order (any chunking; gyro
+    (n, 3) with the z gyro), `add_dwell(first_index, last_index, encoder_deg)` each dwell at rest
+    once its samples have arrived, in time order. Held at any moment: the samples since the last
+    dwell's end (one move and the next dwell) and the last dwell's rest samples (the next stretch
+    is placed with them, eq M1) — bounded by the plan's step, not by the run's length — plus, per
+    stretch and axis, R (p+1)² floats (p = 8 for RUN_TERMS on x, y: 81 floats).
+
+    The samples are placed by the same calls as place_samples (table_angle_from_z on the same
+    arrays), so every sample's α, ω is bit-identical. The fit is least squares through the QR
+    factors rather than the batch's (AᵀA)⁻¹Aᵀy: coefficients, covariance and residuals agree with
+    fit_motion_screened to rounding (relative ~1e-12 for the design's condition ≤ MAX_CONDITION;
+    tests/test_motion_accumulator.py), and the screening drops the same stretches.
+    """
+
+    def __init__(self, rate_hz: float, axes: tuple[str, ...] = ("x", "y"),
+                 terms: tuple[str, ...] = RUN_TERMS) -> None:
+        self.rate_hz = float(rate_hz)
+        self.axes = tuple(axes)
+        self.terms = tuple(terms)
+        self.names = motion_design(np.zeros(1), np.zeros(1), self.axes, self.terms)[1]
+        self.stretches: list[_Stretch] = []
+        self.counts = {"rest": 0, "motion": 0, "stretches_dropped": 0}
+        self._pending_idx: list[np.ndarray] = []
+        self._pending_gyro: list[np.ndarray] = []
+        self._last_index: int | None = None
+        self._dwell: tuple[int, int, float, np.ndarray] | None = None  # last dwell: a, b, enc, rest gyro
+
+    def add_samples(self, sample_index, gyro_dph) -> None:
+        idx = np.asarray(sample_index, dtype=np.int64)
+        g = np.asarray(gyro_dph, dtype=float)
+        if g.ndim != 2 or g.shape != (idx.size, 3):
+            raise InputError(f"motion samples: gyro {g.shape} must be ({idx.size}, 3)")
+        if idx.size == 0:
+            return
+        first = int(idx[0])
+        if np.any(np.diff(idx) <= 0) or (self._last_index is not None and first <= self._last_index):
+            raise InputError("motion samples: sample indices must increase")
+        self._last_index = int(idx[-1])
+        self._pending_idx.append(idx.copy())
+        self._pending_gyro.append(g.copy())
+
+    def _held(self) -> tuple[np.ndarray, np.ndarray]:
+        if not self._pending_idx:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        idx, g = np.concatenate(self._pending_idx), np.concatenate(self._pending_gyro)
+        self._pending_idx, self._pending_gyro = [idx], [g]
+        return idx, g
+
+    def add_dwell(self, first_index: int, last_index: int, encoder_deg: float) -> None:
+        a1, b1, e1 = int(first_index), int(last_index), float(encoder_deg)
+        if self._dwell is not None and a1 <= self._dwell[1]:
+            raise InputError("motion samples: dwells must come in time order")
+        idx, g = self._held()
+        finite = np.all(np.isfinite(g), axis=1)
+        rest_next = g[(idx >= a1) & (idx <= b1) & finite]
+        if self._dwell is not None:
+            a0, b0, e0, rest = self._dwell
+            between = np.flatnonzero((idx >= b0 + 1) & (idx <= a1 - 1))
+            if between.size:
+                complete = between.size == a1 - b0 - 1 and bool(np.all(finite[between]))
+                if not complete or rest.shape[0] == 0 or rest_next.shape[0] == 0:
+                    self.counts["stretches_dropped"] += 1
+                else:
+                    z = np.concatenate([rest[:, 2], g[between, 2], rest_next[:, 2]])
+                    enc = np.full(z.size, np.nan)
+                    enc[: rest.shape[0]], enc[rest.shape[0] + between.size :] = e0, e1
+                    alpha, omega = table_angle_from_z(z, 1.0 / self.rate_hz, enc)
+                    span = slice(rest.shape[0], rest.shape[0] + between.size)
+                    self._add_stretch(True, alpha[span], omega[span], g[between])
+        self._add_stretch(False, np.full(rest_next.shape[0], e1), np.zeros(rest_next.shape[0]), rest_next)
+        later = idx > b1
+        self._pending_idx, self._pending_gyro = [idx[later]], [g[later]]
+        self._dwell = (a1, b1, e1, rest_next)
+
+    def _add_stretch(self, motion: bool, alpha, omega, gyro) -> None:
+        if len(alpha) == 0:
+            return
+        cols = [{"x": 0, "y": 1, "z": 2}[ax] for ax in self.axes]
+        stretch = _Stretch(motion, len(self.axes))
+        stretch.add(alpha, omega, gyro[:, cols], self.axes, self.terms)
+        self.stretches.append(stretch)
+        self.counts["motion" if motion else "rest"] += stretch.n
+
+    def held_samples(self) -> int:
+        """Samples held right now (the memory that does not shrink to factors)."""
+        rest = 0 if self._dwell is None else self._dwell[3].shape[0]
+        return sum(i.size for i in self._pending_idx) + rest
+
+    def _fit(self, keep: list[bool]) -> HarmonicFit:
+        names, p, k = self.names, len(self.names), len(self.axes)
+        used = [s for s, kept in zip(self.stretches, keep, strict=True) if kept]
+        m = sum(s.n for s in used)
+        if m == 0:
+            raise InputError("motion fit: no samples")
+        total = None
+        for s in used:
+            for f in s.factors:
+                total = _fold(total, f)
+        r_a = total[:p, :p]
+        norms = np.linalg.norm(r_a, axis=0)  # = the design's column norms (AᵀA = R_AᵀR_A)
+        if np.any(norms == 0.0):
+            raise InputError(
+                f"motion fit: column {names[int(np.argmin(norms))]} is all zero (no motion in the samples?); "
+                "drop the motion terms"
+            )
+        cond = float(np.linalg.cond(r_a / norms))  # the same singular values as A/norms
+        if not np.isfinite(cond) or cond > MAX_CONDITION:
+            raise InputError(
+                f"motion fit: the samples cannot separate {', '.join(names)} (condition {cond:.3g}); "
+                "turn through whole revolutions or more positions"
+            )
+        coef = np.linalg.solve(r_a, total[:p, p])
+        r_inv = np.linalg.inv(r_a)
+        normal_inv = r_inv @ r_inv.T
+        x_aug = np.r_[coef, -1.0]
+        ssr = sum((s.sq_residual(x_aug) for s in used), np.zeros(k))
+        dof = k * m - p
+        rms = {ax: np.array([np.sqrt(ssr[j] / m)]) for j, ax in enumerate(self.axes)}
+        cov = (float(np.sum(ssr)) / dof * normal_inv)[None]
+        return HarmonicFit(names, coef[None], cov, rms, dof, "residuals")
+
+    def fit_screened(self, k_sigma: float = DISTURBED_K) -> tuple[HarmonicFit, dict[str, int]]:
+        """fit_motion_screened on what was added: the fit with the disturbed motion stretches left
+        out one at a time, the same rule. Returns (fit, counts: rest, motion, stretches_dropped
+        (could not be placed), stretches_disturbed (left out), motion_kept, samples_used)."""
+        keep = [True] * len(self.stretches)
+        rest = [not s.motion for s in self.stretches]
+        k = len(self.axes)
+        dropped = 0
+        while True:
+            fit = self._fit(keep)
+            if not any(rest):
+                break
+            x_aug = np.r_[fit.coefficients[0], -1.0]
+            sums = [float(np.sum(s.sq_residual(x_aug))) for s in self.stretches]
+            floor = (sum(v for v, r in zip(sums, rest, strict=True) if r)
+                     / sum(s.n for s, r in zip(self.stretches, rest, strict=True) if r))
+            worst, worst_excess = None, 0.0
+            for i, s in enumerate(self.stretches):
+                if rest[i] or not keep[i]:
+                    continue
+                excess = (sums[i] / s.n / floor - 1.0) / (k_sigma * np.sqrt(2.0 / (s.n * k)))
+                if excess > max(1.0, worst_excess):
+                    worst, worst_excess = i, excess
+            if worst is None:
+                break
+            keep[worst] = False
+            dropped += 1
+        kept = [s for s, kp in zip(self.stretches, keep, strict=True) if kp]
+        counts = {**self.counts, "stretches_disturbed": dropped,
+                  "motion_kept": sum(s.n for s in kept if s.motion), "samples_used": sum(s.n for s in kept)}
+        return fit, counts
