@@ -204,13 +204,13 @@ def test_smc100_state_machine_and_te_letters(stage):
     assert stage.ask("1TE") == "1TEG"
     stage.send("1SL5")
     assert stage.ask("1TE") == "1TEC"
-    # a long move: MOVING, a new PA re-targets it (the manual allows PA in MOVING), ST ends it
+    # a long move: MOVING; PA is "only accepted in READY state" (manual p. 41): M; ST ends it
     stage.send("1PA300")
     assert stage.ask("1TE") == "1TE@"
     assert stage.status() == (0, smc100.MOVING)
     stage.send("1PA290")
-    assert stage.ask("1TE") == "1TE@"
-    assert stage.ask("1PA?") == "1PA290"
+    assert stage.ask("1TE") == "1TEM"
+    assert stage.ask("1PA?") == "1PA300"
     stage.send("1ST")
     errors, state = stage.wait_state((smc100.READY_FROM_MOVING,))
     stopped = stage.position_deg()
