@@ -99,6 +99,7 @@ def test_smc100_jogging_is_the_keypads_and_te_is_not_accepted_there(smc):
 def test_smc100_bare_st_stops_the_move(smc):
     dev, port, t = smc.controller_in("MOVING")
     dev.handle_line(b"ST", t)
+    assert dev.target_deg < 100.0  # the move to 100 (controller_in) is cut short, in device time
     dev.advance(dev.table.move_end_s + 0.01)
     assert dev.state == 0x33 and dev.last_error == "@"
     dev.handle_line(b"MM0", t)  # p. 37: MM without an address, every controller

@@ -82,7 +82,7 @@ MANUAL: dict[str, Manual] = {
     "OR": Manual("Execute HOME search", "39", "1OR", frozenset({NR})),
     "OT": _p("Set/Get HOME search time-out", "40", "1OT2.2", code="OT"),
     "PA": Manual("Move absolute", "41", "1PA2.2", frozenset({RD}), rf"1PA{NUM}"),
-    "PR": Manual("Move relative", "42", "1PR2.2", frozenset({RD})),
+    "PR": Manual("Move relative", "42", "1PR2.2", frozenset({RD}), rf"1PR{NUM}"),
     "PT": Manual("Get motion time for a relative move", "43", "1PT2.2", frozenset({DI, RD}) | MOTION,
                  set_reply=rf"1PT{NUM}"),
     "PW": Manual("Enter/Leave CONFIGURATION state", "44", "1PW1", frozenset({NR, CF}), r"1PW[01]"),
@@ -133,6 +133,9 @@ SPECIAL_ROWS = (
     ("QIR above QIL", CF, ["1QIL0.75", "1QIR1.0"], r"; TE C$", "QIR ≤ QIL, else C", "45"),
     ("SA below 2", CF, ["1SA1"], r"; TE C$", "SA range 2 to 31", "49"),
     ("ZX? answers the stage reference", RD, ["1ZX?"], r"^1ZX[A-Z]\S* ; TE @$", "`1ZXURS100CC`", "68"),
+    ("lower case accepted", RD, ["1tp"], r"^1TP-?\d", "upper and lower case are accepted", "§5.3, 16"),
+    ("blanks ignored anywhere", RD, ["1P A1 0", "1PA?"], r"^1PA10 ; TE @$",
+     "`2P A1.43 6` is `2PA1.436`", "§5.3, 16"),
 )
 
 

@@ -146,14 +146,15 @@ _COMMAND_RE = re.compile(r"^(\d*)([A-Za-z]{0,2})(.*)$")
 
 
 def parse_command(line: bytes | str) -> SmcCommand:
-    """`b'1PA90.000\\r\\n'` → SmcCommand(1, 'PA', '90.000'). Never raises: bad parts become None."""
+    """`b'1PA90.000\\r\\n'` → SmcCommand(1, 'PA', '90.000'). Never raises: bad parts become None.
+    §5.3: upper and lower case are accepted, blanks are ignored anywhere (`2P A1.43 6` = `2PA1.436`)."""
     text = line.decode("ascii", "replace") if isinstance(line, bytes | bytearray) else line
-    text = text.strip()
+    text = "".join(text.split())
     m = _COMMAND_RE.match(text)
     assert m is not None  # the pattern matches any string
     addr_text, letters, param = m.groups()
     address = int(addr_text) if addr_text else None
-    command = letters if len(letters) == 2 and letters.isupper() else None
+    command = letters.upper() if len(letters) == 2 else None
     return SmcCommand(address, command, param.strip())
 
 
@@ -608,7 +609,7 @@ class Smc100(Device):
     def _cmd_rs(self, cmd: SmcCommand, t: float) -> None:
         if self._refused_here(CONFIG_EXCEPT_JOGGING):
             return
-        if cmd.param == "##":  # RS##: the address back to 1 (saved)
+        if cmd.param == "##":  # RS##: the address back to 1 (not in the user manual: public drivers')
             self.saved["SA"] = 1
             self.address = 1
         if self._end_s is not None:
@@ -634,11 +635,11 @@ class Smc100(Device):
 
     def _move(self, cmd: SmcCommand, t: float, *, relative: bool) -> None:
         """PA/PR (p. 41–42): "only accepted in READY state"; PR adds to the current target."""
-        if cmd.query:
-            if relative or self.target_deg is None:
+        if cmd.query:  # PA? and PR? both return the target position (p. 41, 42)
+            if self.target_deg is None:
                 self._error("D")
             else:
-                self._reply("PA", format_number(self.target_deg))
+                self._reply("PR" if relative else "PA", format_number(self.target_deg))
             return
         value = cmd.value
         if value is None:
