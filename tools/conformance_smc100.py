@@ -133,6 +133,7 @@ SPECIAL_ROWS = (
     ("QIR above QIL", CF, ["1QIL0.75", "1QIR1.0"], r"; TE C$", "QIR ≤ QIL, else C", "45"),
     ("SA below 2", CF, ["1SA1"], r"; TE C$", "SA range 2 to 31", "49"),
     ("ZX? answers the stage reference", RD, ["1ZX?"], r"^1ZX[A-Z]\S* ; TE @$", "`1ZXURS100CC`", "68"),
+    ("PT outside its range", RD, ["1PT-5"], r"; TE C$", "range > 1e-6 and < 1e12, else C", "43"),
     ("lower case accepted", RD, ["1tp"], r"^1TP-?\d", "upper and lower case are accepted", "§5.3, 16"),
     ("blanks ignored anywhere", RD, ["1P A1 0", "1PA?"], r"^1PA10 ; TE @$",
      "`2P A1.43 6` is `2PA1.436`", "§5.3, 16"),

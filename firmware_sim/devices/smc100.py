@@ -600,7 +600,7 @@ class Smc100(Device):
         if self._refused_here({DI, RD, HO, MV}):  # PT's Usage row (p. 43)
             return
         value = cmd.value
-        if value is None:
+        if value is None or not 1e-6 < value < 1e12:  # PT's range (p. 43): > 1e-6 and < 1e12
             self._error("C")
             return
         seconds = motion_time_s(value, float(self.params["VA"]), float(self.params["AC"]))
