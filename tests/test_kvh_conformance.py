@@ -22,7 +22,11 @@ DOC = Path(__file__).resolve().parent.parent / "docs" / "conformance" / "kvh.md"
 
 @pytest.fixture(scope="module")
 def rows():
-    return {(r.mode, r.line): reply for r, reply in conformance_kvh.run_rows()}
+    """(mode, line) → the reply of its first occurrence in the table."""
+    out: dict[tuple[str, str], bytes] = {}
+    for r, reply in conformance_kvh.run_rows():
+        out.setdefault((r.mode, r.line), reply)
+    return out
 
 
 def test_the_table_on_disk_is_what_firmware_sim_answers_now():
@@ -46,8 +50,27 @@ def test_the_manuals_own_examples(rows):
     # §7: unknown input in Configuration Mode → "INVALID," + the echo; ignored in Normal Mode
     assert rows[("config", "=FOO")] == b"INVALID,=FOO\r\n"
     assert rows[("normal", "=FOO")] == b"" and rows[("normal", "?DR")] == b""
-    # §7: invalid parameters to a known keyword → a prompt
+    # §7: invalid parameters to a known keyword → a prompt; §7.1: an integer sent as a float too
     assert rows[("config", "=DR,333")].startswith(b"USAGE,=DR,<1|5|10|25|50|100|250|500|750|1000")
+    assert rows[("config", "=DR,100.0")].startswith(b"USAGE,=DR,")
+    # §8.10/§8.11: the echo counter
+    assert [rows[("config", line)] for line in ("=ECHO", "=ECHO,5", "?ECHO", "=ECHO,Reset")] == [
+        b"ECHO,1\r\n", b"ECHO,5\r\n", b"ECHO,6\r\n", b"ECHO,0\r\n"]
+    # §8.25.3: the log layout of the manual's example
+    logs = rows[("config", "?LOGS")].decode().split("\r\n")
+    assert logs[:5] == ["Start of log entries!", "Log 1:", "Source - ?BIT", "Format - BIT Status",
+                        "Data - 0x7F7F7F7F7F7F7F7F"] and logs[-2:] == ["End of log entries!", ""]
+    assert rows[("normal", "?LOGS")] == b""  # tech. manual p. 24: a Configuration mode command
+
+
+def test_bit2_checksum_rule_gives_the_icds_own_example():
+    """ICD §5.3.2: `FE 81 00 AB 7F 7F 7F 7F 7F 7F 37 7F DA` — Table 5-11's rule (sum mod 256, header
+    included) reproduces its last byte; with all bytes healthy it gives 0x22."""
+    from firmware_sim.devices.kvh import bit_message
+
+    example = bytes.fromhex("FE 81 00 AB 7F 7F 7F 7F 7F 7F 37 7F DA")
+    assert bit_message(extended=True, data=example[4:-1]) == example
+    assert bit_message(extended=True)[-1] == 0x22
 
 
 def test_query_bit_in_normal_mode_follows_the_next_data_message_on_a_pty():

@@ -83,8 +83,8 @@ def test_smc100_manual_start_up_moves_and_bare_st():
         host.ok("1PW1")
         assert host.state() == 0x14  # CONFIGURATION
         host.send("1ZT")
-        dump = [host.line()]
-        while dump[-1] != "1PW0":
+        dump = [host.line()]  # the manual's example (p. 67): 1PW1, the parameters, 1PW1
+        while len(dump) == 1 or dump[-1] != "1PW1":
             dump.append(host.line())
         assert dump[0] == "1PW1" and len(dump) > 10
         assert {line[1:3] for line in dump} >= {"AC", "VA", "SL", "SR", "SU", "ZX"}

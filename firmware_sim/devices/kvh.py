@@ -1,11 +1,15 @@
 """KVH 1750/1760/1775 IMU speaking "format A" (docs/PROTOCOLS.md §2) on a pty.
 
-Reference: the KVH 1775 IMU technical manual / ICD (56-0298). Data messages: Tables 5-1, 5-2
-(format A), 5-8 (status), 5-9 (CRC). The dialogue: §7 "Commands and Queries" (echo without the
-`=`, `KEY,value` replies, `INVALID,` + the line in Configuration Mode, a usage prompt for bad
-parameters, nothing answered in Normal Mode but `=CONFIG` and `?BIT`), §8 (one entry per command:
-the COMMANDS table below), §3.3 (Normal vs Configuration Mode), §3.4 and §5.3 (the BIT message,
-sent at power-up before the data and on `?BIT`). What firmware-sim answers to each command
+Reference: KVH "1775 IMU Technical Manual" 54-0938 and its Appendix C, the ICD 56-0298 Rev. B
+("Page n of 77"; read at easymanua.ls/kvh-industries/1775-imu, which shows the technical manual
+then the ICD). Data messages: ICD Tables 5-1, 5-2 (format A), 5-8 (status), 5-9 (CRC), §5.2.1 (a
+sample message). The dialogue: ICD §7 "Commands and Queries" (p. 24: echo without the `=`,
+`KEY,value` replies, `INVALID,` + the line in Configuration Mode, a prompt for bad parameters —
+the copy breaks off before that prompt's first word; §7.1 p. 25 calls it "a usage response"),
+§8 (one entry per command: the COMMANDS table below, section numbers where the entry was read),
+§3.3 and §5.1 (Normal vs Configuration Mode, the Normal Mode subset), §3.4, §5.1 and §5.3 (the
+BIT message: one at power-up before the data, one per `?BIT`/`?BIT,2`), §8.25 (`?LOGS`), Table 8-4
+(`=MSYNC,EXT` sets both output filters to the Averager). What firmware-sim answers to each command
 against what the manual says: docs/conformance/kvh.md (tools/conformance_kvh.py).
 
 The codec is written here from the protocol sheet: messages are packed many at a time into a
@@ -212,6 +216,8 @@ def _command_table() -> dict[tuple[str, str], Command]:
         ("=", "CONFIG", "_cmd_config", "=CONFIG,<0|1>", "1 enters Configuration Mode, 0 returns to Normal",
          "3.3, 8"),
         ("?", "CONFIG", "_cmd_config", "?CONFIG", "query the operating mode", "3.3, 8"),
+        ("=", "ECHO", "_cmd_echo", "=ECHO[,<value>|,RESET]", "count calls: increment, set or reset", "8.10"),
+        ("?", "ECHO", "_cmd_echo", "?ECHO[,<value>|,RESET]", "identical to =ECHO", "8.11"),
         ("=", "DR", "_cmd_dr", "=DR,<" + "|".join(map(str, DR_VALUES_HZ)) + ">", "set the data rate, Hz",
          "8.8"),
         ("?", "DR", "_cmd_dr", "?DR", "query the data rate", "8.9"),
@@ -221,6 +227,7 @@ def _command_table() -> dict[tuple[str, str], Command]:
         ("=", "HELP", "_cmd_help", "=HELP[,command]", "list the commands", "8.18"),
         ("?", "HELP", "_cmd_help", "?HELP[,command]", "the same as =HELP", "8.19"),
         ("?", "IS", "_cmd_is", "?IS", "query the unit's serial number", "8.20"),
+        ("?", "LOGS", "_cmd_logs", "?LOGS", "the BIT status logs stored in flash", "8.25"),
         ("=", "MSYNC", "_cmd_choice", "=MSYNC,<IMU|EXT>", "output timed by the unit or by MSYNC pulses", "8"),
         ("?", "MSYNC", "_cmd_choice", "?MSYNC", "query the MSYNC mode", "8"),
         ("=", "RESTART", "_cmd_restart", "=RESTART", "restart the unit (power-up BIT message again)", "8"),
@@ -238,8 +245,11 @@ def _command_table() -> dict[tuple[str, str], Command]:
 
 COMMANDS = _command_table()
 NORMAL_MODE_COMMANDS = {("=", "CONFIG"), ("?", "BIT")}
-"""What the unit answers in Normal Mode (§3.3 "permissible commands", §8.5 ?BIT "while it is running
-in Normal (binary) Mode"); any other input is ignored there (§7)."""
+"""What the unit answers in Normal Mode. The ICD names "the permissible subset of commands … (e.g.,
+=config,1 or ?bit)" (§5.1) and lists them in its Table 7-1, which we could not read; §8.5 runs ?BIT
+"while it is running in Normal (binary) Mode", and the technical manual (54-0938, "Built-In Test")
+names `?bit` and `?bit,2` in Normal mode and `?logs` in Configuration mode. Any other input is
+ignored in Normal Mode (§7). So this set is the two the documents name, not Table 7-1's."""
 CHOICES = {
     "ROTFMT": ("rot_format", ("DELTA", "RATE")),
     "ROTUNITS": ("rot_units", ("RAD", "DEG")),
@@ -288,6 +298,10 @@ class KvhImu(Device):
         self.serial_number = serial_number
         self._defaults()
         self._bit_due: bytes | None = None
+        self.echo_count = 0
+        """=ECHO's counter (§8.10): not stored, 0 after a reset."""
+        self.bit_log: list[tuple[str, bytes]] = []
+        """(source, data bytes) of every BIT message sent, for ?LOGS (§8.25)."""
         self.dialogue_rate = float(getattr(faults, "imu_dialogue_rate", 0.0) or 0.0)
         self.dialogue_rng = np.random.default_rng(fault_seed) if self.dialogue_rate else None
         self.dialogue_sent = 0
@@ -391,7 +405,7 @@ class KvhImu(Device):
         if self._link is None:  # power-on: a client already there gets every sample, no grace
             self._link = "arming" if self.port.connected else "down"
             if self.port.connected and self.power_up_bit:  # before the periodic data (§3.4)
-                self._write(bit_message())
+                self._write(self._logged_bit("Start up"))
         self._disconnect_events(t_device_s)
         n_due = int(math.floor((t_device_s - self.epoch_s) * self.rate_hz + 1e-9)) - self.emitted
         if n_due > 0:
@@ -462,6 +476,8 @@ class KvhImu(Device):
         if args not in values:
             raise _BadParameter
         setattr(self, attr, args)
+        if key == "MSYNC" and args == "EXT":  # Table 8-4: external MSYNC sets both filters to Averager
+            self.filter_type = {"A": "AVE", "G": "AVE"}
         return self._echo(key, args)
 
     def _cmd_filttype(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
@@ -492,7 +508,7 @@ class KvhImu(Device):
     def _cmd_bit(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
         if args not in ("", "2"):
             raise _BadParameter
-        message = bit_message(extended=args == "2")
+        message = self._logged_bit("?BIT" if args == "" else "?BIT,2", extended=args == "2")
         if self.config_mode:
             return [message]
         self._bit_due = message  # Normal Mode: sent right after the next data message (§8.5)
@@ -523,8 +539,40 @@ class KvhImu(Device):
         if args:
             raise _BadParameter
         self.config_mode = False  # the unit comes back in Normal Mode, BIT message first (§3.4)
+        self.echo_count = 0
         self._grid_event("restart")
-        return self._echo(key, "") + [bit_message()]
+        return self._echo(key, "") + [self._logged_bit("Start up")]
+
+    def _logged_bit(self, source: str, extended: bool = False) -> bytes:
+        """A healthy BIT message, recorded for ?LOGS as its source named it."""
+        message = bit_message(extended=extended)
+        self.bit_log.append((source, message[4:-1]))
+        return message
+
+    def _cmd_echo(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        """=ECHO / ?ECHO (§8.10, §8.11): increment the counter; `,<value>` sets it, `,RESET` zeroes it."""
+        if args == "":
+            self.echo_count += 1
+        elif args == "RESET":
+            self.echo_count = 0
+        elif args.isdigit():
+            self.echo_count = int(args)
+        else:
+            raise _BadParameter
+        return self._echo(key, str(self.echo_count))
+
+    def _cmd_logs(self, kind: str, key: str, args: str, t: float) -> list[bytes]:
+        """?LOGS (§8.25): the BIT logs in the layout of the manual's example. The example shows 8
+        data bytes for a `?BIT` entry; a 6-byte BIT message is logged padded with 0x7F (healthy)."""
+        if args:
+            raise _BadParameter
+        lines = ["Start of log entries!"]
+        for n, (source, data) in enumerate(self.bit_log, 1):
+            padded = (data + bytes([BIT_HEALTHY] * 8))[:8]
+            lines += [f"Log {n}:", f"Source - {source}", "Format - BIT Status",
+                      f"Data - 0x{padded.hex().upper()}"]
+        lines.append("End of log entries!")
+        return [line.encode("ascii") + EOL for line in lines]
 
     def _defaults(self) -> None:
         """The settings a unit has from the factory (and after =RSTCFG)."""
@@ -671,7 +719,7 @@ class KvhImu(Device):
             data = data[skip:]  # (nothing stale is queued: the last disconnect discarded it)
             self._link = "up"
             if self.dialogue_rate:  # as if powered on with the host listening: BIT message first
-                self._write(bit_message())
+                self._write(self._logged_bit("Start up"))
             self._event("imu_connect", k0=int(k_abs[i0]), sequence0=int(seq[i0]),
                         t0_device_s=float(t_end[i0]), rate_hz=self.rate_hz, port=self.port.path)
         self.k_last_delivered = int(k_abs[-1])

@@ -1,20 +1,24 @@
 """Newport SMC100CC single-axis controller on a pty, as its user manual describes it.
 
-Reference: Newport "SMC100CC & SMC100PP Single-Axis DC or Stepper Motion Controller User's Manual",
-its "Remote Mode" chapter: the command syntax (`xxAAnn`, address 1…31, a bare `ST`/`SE` for all controllers),
-the command list with the controller states each command is allowed in, the command
-descriptions, the TE error-code table (`@` … `X`), the TS positioner-error bits and controller
-states. docs/PROTOCOLS.md §1 carries these tables (marked as taken from the manual), and
-docs/conformance/smc100.md is generated from this module by tools/conformance_smc100.py.
+Reference: Newport "SMC100CC & SMC100PP Single-Axis Motion Controller/Driver for DC or Stepper
+Motor — User's Manual" V3.0.x, EDH0206En2054 (06/23; the 09/18 edition EDH0206En2051 has the same
+command pages), chapter 5 "Remote Mode": §5.1 the state diagram, §5.3 command syntax (`xxAAnn`,
+CR LF), §5.5 "Command Set": the command list with the states each command is accepted in (p. 18–19)
+and one page per command (p. 20–68) with its Usage row, range, errors and example. Pages below are
+the printed page numbers of that edition. docs/PROTOCOLS.md §1 carries the tables (marked as taken
+from the manual); docs/conformance/smc100.md is generated from this module by
+tools/conformance_smc100.py.
 
 The codec (bytes ⇄ command/reply) is written here from the manual. The controller is a state
 machine over the physics' table motion: `OR` homes to α = 0, `PA`/`PR` plan a move on
-`world.table` (in MOVING a new `PA`/`PR` re-targets the move in progress: the manual lists both as
-allowed in MOVING; `PR` then adds to the current target); the state goes READY when the *planned*
-move ends (the table may still ring a little: that is physics, and the encoder shows it). `TP`
-reports the encoder, `TH` the set-point. This is a CC controller: the PP-only commands (`DV`,
-`FR`, `VB`) leave TE `X`. Every command that cannot run leaves its TE letter; set and move
-commands never reply (the manual: the host reads TE).
+`world.table`, accepted only in READY (p. 41–42; `PR` adds to the current target); the state goes
+READY when the *planned* move ends (the table may still ring a little: that is physics, and the
+encoder shows it). `TP` reports the encoder, `TH` the set-point. `ST` (p. 56) and `MM` (p. 37)
+without an address, or with address 0, act on every controller. `TS` clears the positioner error
+bits it reports (the notes on p. 63). JOGGING is entered only from the keypad (`keypad_jog`); `JM`
+enables or disables the keypad (p. 31). This is a CC controller: the commands marked "Not for CC"
+(`FR`, `VB`) leave TE `X`. Every command that cannot run leaves its TE letter; set and move
+commands never reply (the host reads TE).
 """
 
 from __future__ import annotations
@@ -142,14 +146,15 @@ _COMMAND_RE = re.compile(r"^(\d*)([A-Za-z]{0,2})(.*)$")
 
 
 def parse_command(line: bytes | str) -> SmcCommand:
-    """`b'1PA90.000\\r\\n'` → SmcCommand(1, 'PA', '90.000'). Never raises: bad parts become None."""
+    """`b'1PA90.000\\r\\n'` → SmcCommand(1, 'PA', '90.000'). Never raises: bad parts become None.
+    §5.3: upper and lower case are accepted, blanks are ignored anywhere (`2P A1.43 6` = `2PA1.436`)."""
     text = line.decode("ascii", "replace") if isinstance(line, bytes | bytearray) else line
-    text = text.strip()
+    text = "".join(text.split())
     m = _COMMAND_RE.match(text)
     assert m is not None  # the pattern matches any string
     addr_text, letters, param = m.groups()
     address = int(addr_text) if addr_text else None
-    command = letters if len(letters) == 2 and letters.isupper() else None
+    command = letters.upper() if len(letters) == 2 else None
     return SmcCommand(address, command, param.strip())
 
 
@@ -198,15 +203,18 @@ STATE_NAMES: dict[int, str] = {
     0x0C: "NOT REFERENCED from CONFIGURATION", 0x0D: "NOT REFERENCED from DISABLE",
     0x0E: "NOT REFERENCED from READY", 0x0F: "NOT REFERENCED from MOVING",
     0x10: "NOT REFERENCED ESP stage error", 0x11: "NOT REFERENCED from JOGGING",
-    0x14: "CONFIGURATION", 0x1E: "HOMING commanded from RS-232-C", 0x1F: "HOMING commanded by SMC-RC",
+    0x14: "CONFIGURATION", 0x1E: "HOMING commanded from RS-232-C", 0x1F: "HOMING commanded by Keypad",
     0x28: "MOVING", 0x32: "READY from HOMING", 0x33: "READY from MOVING", 0x34: "READY from DISABLE",
     0x35: "READY from JOGGING", 0x3C: "DISABLE from READY", 0x3D: "DISABLE from MOVING",
     0x3E: "DISABLE from JOGGING", 0x46: "JOGGING from READY", 0x47: "JOGGING from DISABLE",
 }
 """Controller states, the manual's TS description."""
 
-WORKING = frozenset({NR, CF, DI, RD})
-"""Where a working motion parameter may be set (CONFIGURATION stores it, PW0 saves it)."""
+WORKING = frozenset({CF, DI, RD})
+"""Where a working motion parameter may be set (CONFIGURATION stores it, PW0 saves it): the
+manual's Usage row for AC, JR, VA, SL, SR (p. 20, 32, 64, 54, 55)."""
+LOOP = frozenset({CF, DI})
+"""The control-loop parameters FD, FE, FF, KD, KI, KP, KV: CONFIGURATION and DISABLE (p. 24–26, 33–36)."""
 CONFIG_ONLY = frozenset({CF})
 
 
@@ -226,38 +234,49 @@ PARAMS: dict[str, Param] = {
     "AC": Param("Set/Get acceleration", 80.0, 1e-6, 1e12, WORKING),
     "BA": Param("Set/Get backlash compensation", 0.0),
     "BH": Param("Set/Get hysteresis compensation", 0.0),
-    "FD": Param("Set/Get low pass filter for Kd", 1000.0, 1e-6, 2000.0, WORKING),
-    "FE": Param("Set/Get following error limit", 0.5, 1e-6, 1e12, WORKING),
-    "FF": Param("Set/Get friction compensation", 0.0, 0.0, 1e12, WORKING),
+    "DV": Param("Set/Get driver voltage", 48.0, 12.0, 48.0),
+    "FD": Param("Set/Get low pass filter for Kd", 1000.0, 1e-6, 2000.0, LOOP),
+    "FE": Param("Set/Get following error limit", 0.5, 1e-6, 1e12, LOOP),
+    "FF": Param("Set/Get friction compensation", 0.0, 0.0, 1e12, LOOP),
     "HT": Param("Set/Get HOME search type", 1, 0, 4, kind="int"),
     "ID": Param("Set/Get stage identifier", "URS100BCC", kind="str"),
+    "JM": Param("Enable/disable keypad", 1, 0, 1, WORKING, kind="int"),
     "JR": Param("Set/Get jerk time", 0.05, 0.001, 1e12, WORKING),
-    "KD": Param("Set/Get derivative gain", 0.0, 0.0, 1e12, WORKING),
-    "KI": Param("Set/Get integral gain", 10.0, 0.0, 1e12, WORKING),
-    "KP": Param("Set/Get proportional gain", 100.0, 0.0, 1e12, WORKING),
-    "KV": Param("Set/Get velocity feed forward", 0.0, 0.0, 1e12, WORKING),
+    "KD": Param("Set/Get derivative gain", 0.0, 0.0, 1e12, LOOP),
+    "KI": Param("Set/Get integral gain", 10.0, 0.0, 1e12, LOOP),
+    "KP": Param("Set/Get proportional gain", 100.0, 0.0, 1e12, LOOP),
+    "KV": Param("Set/Get velocity feed forward", 0.0, 0.0, 1e12, LOOP),
     "OH": Param("Set/Get HOME search velocity", 20.0, 1e-6, 1e12),
     "OT": Param("Set/Get HOME search time-out", 100.0, 1.0, 1e3),
-    "QI": Param("Set/Get motor's current limits", 1.5, 0.05, 3.0),
-    "SA": Param("Set/Get controller's RS-485 address", 1, 1, 31, kind="int"),
-    "SC": Param("Set/Get control loop state", 1, 0, 1, frozenset({NR, CF, DI, RD}), kind="int"),
+    "SA": Param("Set/Get controller's RS-485 address", 1, 2, 31, kind="int"),
+    "SC": Param("Set/Get control loop state", 1, 0, 1, CONFIG_ONLY, kind="int"),
     "SU": Param("Set/Get encoder increment value", 1e-4, 1e-6, 1e12),
     "VA": Param("Set/Get velocity", 20.0, 1e-6, 1e12, WORKING),
-    "ZX": Param("Set/Get SmartStage configuration", 2, 1, 3, frozenset({NR, CF}), kind="int"),
+    "ZX": Param("Set/Get SmartStage configuration", 2, 1, 3, CONFIG_ONLY, kind="int"),
 }
-"""Stored parameters. A value set in CONFIGURATION is saved by PW0 (the controller's memory);
-one set in another allowed state is a working value that RS forgets."""
+"""Stored parameters, allowed states from each command's Usage row in the manual. A value set in
+CONFIGURATION is saved by PW0 (the controller's memory); one set in another allowed state is a
+working value that RS forgets."""
 
-PP_ONLY = {"DV": "Set/Get driver voltage", "FR": "Set/Get stepper motor configuration",
-           "VB": "Set/Get base velocity"}
-"""Commands the manual gives for the PP (stepper) version only: this CC controller answers TE X."""
+QI_LIMITS: dict[str, tuple[str, float, float, float]] = {
+    "L": ("peak current limit, A", 1.5, 0.05, 3.0),
+    "R": ("rms current limit, A", 0.5, 0.05, 1.5),
+    "T": ("rms current averaging time, s", 1.0, 0.01, 100.0),
+}
+"""QI's three sub-parameters (p. 45): `xxQILnn`, `xxQIRnn`, `xxQITnn` and their `?` forms, set in
+CONFIGURATION only; QIR must not exceed QIL; QIT > 0.01 s."""
+
+PP_ONLY = {"FR": "Set/Get stepper motor configuration", "VB": "Set/Get base velocity"}
+"""Commands the manual's command list marks "Not for CC" (p. 18): this CC controller answers TE X.
+(DV, FD, FE, FF, KD, KI, KP, KV, SC, SU are marked "Not for PP": a CC controller has them.)"""
 
 COMMANDS: dict[str, str] = {
     **{code: p.title for code, p in PARAMS.items()},
     **PP_ONLY,
-    "JD": "Leave JOGGING state", "JM": "Enter/Leave JOGGING state", "MM": "Enter/Leave DISABLE state",
+    "JD": "Leave JOGGING state", "MM": "Enter/Leave DISABLE state",
     "OR": "Execute HOME search", "PA": "Move absolute", "PR": "Move relative",
     "PT": "Get motion time for a relative move", "PW": "Enter/Leave CONFIGURATION state",
+    "QI": "Set/Get motor's current limits",
     "RA": "Get analog input value", "RB": "Get TTL input value", "RS": "Reset controller",
     "SB": "Set/Get TTL output value", "SE": "Configure/Execute simultaneous started move",
     "SL": "Set/Get negative software limit", "SR": "Set/Get positive software limit",
@@ -268,10 +287,14 @@ COMMANDS: dict[str, str] = {
 }
 """Every two-letter command of the manual's command list, with the manual's title."""
 
-ZT_ORDER = ("AC", "BA", "BH", "FD", "FE", "FF", "HT", "JR", "KD", "KI", "KP", "KV", "OH", "OT", "QI",
-            "SA", "SC", "SL", "SR", "SU", "VA", "ZX")
-"""What ZT dumps, one `<addr><CC><value>` line each, between `PW1` and `PW0` (a file that can be
-sent back to configure another controller)."""
+ZT_ORDER = ("AC", "BA", "BH", "DV", "FD", "FE", "FF", "HT", "JM", "JR", "KD", "KI", "KP", "KV", "OH", "OT",
+            "QIL", "QIR", "QIT", "SA", "SC", "SL", "SR", "SU", "VA", "ZX")
+"""What ZT dumps (p. 67), one `<addr><CC><value>` line each. The manual's example shows the first
+and last lines, `1PW1` both (both editions, 2018 and 2023), floats with six decimals
+(`1AC320.000000`, `1BA0.000000`, `1VA80.000000`), integers bare (`1ZX3`), in alphabetical
+order; which parameters sit between `BA` and `VA` it elides (`…`): this list is firmware-sim's."""
+CONFIG_EXCEPT_JOGGING = frozenset({NR, CF, DI, RD, HO, MV})
+"""RS, TE and ZT: every state but JOGGING (their Usage rows, p. 48, 59, 67)."""
 
 
 def state_group(state: int) -> str:
@@ -326,6 +349,7 @@ class Smc100(Device):
         self._rx = bytearray()
         self.moves = 0
         self.saved: dict[str, Any] = {code: p.default for code, p in PARAMS.items()}
+        self.saved.update({f"QI{sub}": spec[1] for sub, spec in QI_LIMITS.items()})
         """The controller's memory (what PW0 saved); the table's own figures for AC, VA, OH, SU."""
         self.saved.update(AC=math.degrees(self.table.accel_rad_s2), VA=math.degrees(self.table.speed_rad_s),
                           OH=math.degrees(self.table.home_speed_rad_s), SA=self.address)
@@ -402,11 +426,13 @@ class Smc100(Device):
     def handle_line(self, line: bytes, t: float) -> None:
         """Act on one command line at device time t; replies go to the port."""
         cmd = parse_command(line)
+        if cmd.address in (None, 0) and cmd.command in ("ST", "MM"):
+            # ST (p. 56) and MM (p. 37) without an address or with address 0: every controller
+            handler = self._cmd_st if cmd.command == "ST" else self._cmd_mm
+            handler(cmd, t)
+            return
         if cmd.address is None:
-            # the manual: ST and SE without an address act on every controller of the chain
-            if cmd.command == "ST":
-                self._cmd_st(cmd, t)
-            elif cmd.command == "SE" and cmd.param == "":
+            if cmd.command == "SE" and cmd.param == "":  # bare SE (p. 52): start the SE moves
                 self._execute_simultaneous(t)
             else:
                 self._error("B")
@@ -449,7 +475,8 @@ class Smc100(Device):
         """A stored parameter: `?` (or nothing) answers it, a value sets it where allowed."""
         spec = PARAMS[code]
         if cmd.query or cmd.param == "":
-            self._reply(code, self._format_param(code))
+            # ZX? answers the stage reference (p. 68: `1ZX?` → `1ZXURS100CC`), not ZX's value
+            self._reply(code, self._format_param("ID" if code == "ZX" else code))
             return
         if self._refused_here(spec.set_in):
             return
@@ -476,8 +503,38 @@ class Smc100(Device):
         return value if isinstance(value, str) else format_number(value)
 
     def _cmd_te(self, cmd: SmcCommand, t: float) -> None:
+        if self._refused_here(CONFIG_EXCEPT_JOGGING):
+            return
         self._reply("TE", self.last_error)
         self.last_error = "@"
+
+    def _cmd_qi(self, cmd: SmcCommand, t: float) -> None:
+        """QIL/QIR/QIT (p. 45): peak and rms current limits, rms averaging time; CONFIGURATION only."""
+        sub, param = cmd.param[:1].upper(), cmd.param[1:].strip()
+        if sub not in QI_LIMITS:
+            self._error("C")
+            return
+        key = f"QI{sub}"
+        if param in ("", "?"):
+            self._reply(key, format_number(self.params[key]))
+            return
+        if self._refused_here(CONFIG_ONLY):
+            return
+        try:
+            value = float(param)
+        except ValueError:
+            value = math.nan
+        _, _, low, high = QI_LIMITS[sub]
+        ok = low <= value <= high if sub != "T" else low < value <= high
+        if sub == "R" and not value <= float(self.params["QIL"]):
+            ok = False
+        if sub == "L" and not value >= float(self.params["QIR"]):
+            ok = False
+        if not ok:
+            self._error("C")
+            return
+        self.params[key] = value
+        self._pending[key] = value
 
     def _cmd_tb(self, cmd: SmcCommand, t: float) -> None:
         """TB<letter> → that code's text; TB alone → the last error's (and clears it, as TE)."""
@@ -490,7 +547,9 @@ class Smc100(Device):
             self.last_error = "@"
 
     def _cmd_ts(self, cmd: SmcCommand, t: float) -> None:
+        """TS (p. 62–63): the notes say TS reads the positioner error buffer and clears it."""
         self.port.write(encode_status(self.address, self.errors, self.state))
+        self.errors = 0
 
     def _cmd_tp(self, cmd: SmcCommand, t: float) -> None:
         self._reply("TP", format_number(self._encoder_deg(t)))
@@ -511,6 +570,8 @@ class Smc100(Device):
         if cmd.query or cmd.param == "":
             self._reply("SB", str(self.ttl_out))
             return
+        if self._refused_here({DI, RD, HO, MV, JG}):  # SB's Usage row (p. 50)
+            return
         value = cmd.value
         if value is None or value != int(value) or not 0 <= value <= 15:
             self._error("C")
@@ -518,29 +579,37 @@ class Smc100(Device):
         self.ttl_out = int(value)
 
     def _cmd_zt(self, cmd: SmcCommand, t: float) -> None:
-        """The multi-line parameter dump: PW1, one set line per parameter, PW0."""
+        """The multi-line parameter dump as the manual's example prints it (p. 67): `1PW1`, one
+        line per parameter (floats with six decimals), `1PW1` again."""
+        if self._refused_here(CONFIG_EXCEPT_JOGGING):
+            return
         lines = [encode_reply(self.address, "PW", "1")]
         for code in ZT_ORDER:
             if code == "SL":
-                text = format_number(self.limits_deg[0])
+                value: Any = self.limits_deg[0]
             elif code == "SR":
-                text = format_number(self.limits_deg[1])
+                value = self.limits_deg[1]
             else:
-                text = self._format_param(code)
-            lines.append(encode_reply(self.address, code, text))
-        lines.append(encode_reply(self.address, "PW", "0"))
+                value = self.params[code]
+            text = value if isinstance(value, str | int) else f"{float(value):.6f}"
+            lines.append(encode_reply(self.address, code, str(text)))
+        lines.append(encode_reply(self.address, "PW", "1"))
         self.port.write(b"".join(lines))
 
     def _cmd_pt(self, cmd: SmcCommand, t: float) -> None:
+        if self._refused_here({DI, RD, HO, MV}):  # PT's Usage row (p. 43)
+            return
         value = cmd.value
-        if value is None:
+        if value is None or not 1e-6 < value < 1e12:  # PT's range (p. 43): > 1e-6 and < 1e12
             self._error("C")
             return
         seconds = motion_time_s(value, float(self.params["VA"]), float(self.params["AC"]))
         self._reply("PT", format_number(seconds))
 
     def _cmd_rs(self, cmd: SmcCommand, t: float) -> None:
-        if cmd.param == "##":  # RS##: the address back to 1 (saved)
+        if self._refused_here(CONFIG_EXCEPT_JOGGING):
+            return
+        if cmd.param == "##":  # RS##: the address back to 1 (not in the user manual: public drivers')
             self.saved["SA"] = 1
             self.address = 1
         if self._end_s is not None:
@@ -565,18 +634,18 @@ class Smc100(Device):
         self._move(cmd, t, relative=True)
 
     def _move(self, cmd: SmcCommand, t: float, *, relative: bool) -> None:
-        """PA/PR, allowed in READY and MOVING (a new target for the move in progress)."""
-        if cmd.query:
-            if relative or self.target_deg is None:
+        """PA/PR (p. 41–42): "only accepted in READY state"; PR adds to the current target."""
+        if cmd.query:  # PA? and PR? both return the target position (p. 41, 42)
+            if self.target_deg is None:
                 self._error("D")
             else:
-                self._reply("PA", format_number(self.target_deg))
+                self._reply("PR" if relative else "PA", format_number(self.target_deg))
             return
         value = cmd.value
         if value is None:
             self._error("C")
             return
-        if self._refused_here({RD, MV}):
+        if self._refused_here({RD}):
             return
         base = self.target_deg if self.target_deg is not None else self._encoder_deg(t)
         target = base + value if relative else value
@@ -626,6 +695,9 @@ class Smc100(Device):
         self._start_move(target, t)
 
     def _cmd_st(self, cmd: SmcCommand, t: float) -> None:
+        """ST (p. 56): DISABLE, READY (nothing to stop) and motion; H, I elsewhere, D in JOGGING."""
+        if self._refused_here({DI, RD, HO, MV}):
+            return
         if self.state == MOVING:
             self._stalling = False
             start_deg = self._motor_deg(t)
@@ -638,8 +710,6 @@ class Smc100(Device):
             self.table.stop(t)
             self._move_event("stop", t, start_deg)
             self.state = NOT_REFERENCED_FROM_HOMING
-        elif self.state in (JOGGING_FROM_READY, JOGGING_FROM_DISABLE):
-            self.state = READY_FROM_JOGGING
 
     def _limit(self, cmd: SmcCommand, t: float, index: int) -> None:
         name = "SL" if index == 0 else "SR"
@@ -652,6 +722,10 @@ class Smc100(Device):
             return
         if self._refused_here(WORKING):
             return
+        if self.state != CONFIGURATION and self.target_deg is not None and (
+                (index == 0 and value > self.target_deg) or (index == 1 and value < self.target_deg)):
+            self._error("C")  # p. 54-55: SL ≤ set-point ≤ SR as a working value
+            return
         self.limits_deg[index] = value
 
     def _cmd_sl(self, cmd: SmcCommand, t: float) -> None:
@@ -661,63 +735,48 @@ class Smc100(Device):
         self._limit(cmd, t, 1)
 
     def _cmd_pw(self, cmd: SmcCommand, t: float) -> None:
-        """PW1 enters CONFIGURATION (from NOT REFERENCED only), PW0 saves and leaves it."""
+        """PW1 enters CONFIGURATION from NOT REFERENCED, PW0 saves and leaves it (p. 44: allowed in
+        those two states; J K L M elsewhere). PW1 in CONFIGURATION, PW0 in NOT REFERENCED: nothing to do."""
         if cmd.query or cmd.param == "":
             self._reply("PW", "1" if self.state == CONFIGURATION else "0")
             return
-        if cmd.value == 1.0:
-            if self.state != CONFIGURATION and not self._refused_here({NR}):
-                self.state = CONFIGURATION
-                self._pending = {}
-        elif cmd.value == 0.0:
-            if self.state == CONFIGURATION:
-                self.saved.update(self._pending)
-                if "SA" in self._pending:
-                    self.address = int(self._pending["SA"])
-                self.state = NOT_REFERENCED_FROM_CONFIGURATION
-            else:
-                self._error(STATE_LETTER[state_group(self.state)])
-        else:
+        if cmd.value not in (0.0, 1.0):
             self._error("C")
+            return
+        if self._refused_here({NR, CF}):
+            return
+        if cmd.value == 1.0 and self.state != CONFIGURATION:
+            self.state = CONFIGURATION
+            self._pending = {}
+        elif cmd.value == 0.0 and self.state == CONFIGURATION:
+            self.saved.update(self._pending)
+            if "SA" in self._pending:
+                self.address = int(self._pending["SA"])
+            self.state = NOT_REFERENCED_FROM_CONFIGURATION
 
     def _cmd_mm(self, cmd: SmcCommand, t: float) -> None:
         """MM0 enters DISABLE from READY, MM1 leaves DISABLE to READY (clears the error bits)."""
         if cmd.query or cmd.param == "":
             self._reply("MM", f"{self.state:02X}")
             return
+        if self._refused_here({DI, RD}):  # MM's Usage row (p. 37)
+            return
         if cmd.value == 0.0:
             if is_ready(self.state):
                 self.state = DISABLE_FROM_READY
-            elif not is_disable(self.state):
-                self._refused_here({RD})
         elif cmd.value == 1.0:
             if is_disable(self.state):
                 self.state = READY_FROM_DISABLE
                 self.errors = 0
                 self.target_deg = self._encoder_deg(t)
-            elif not is_ready(self.state):
-                self._refused_here({DI})
         else:
             self._error("C")
 
-    def _cmd_jm(self, cmd: SmcCommand, t: float) -> None:
-        """JM1 enters JOGGING from READY or DISABLE, JM0 leaves it (jogging is the keypad's)."""
-        jogging = self.state in (JOGGING_FROM_READY, JOGGING_FROM_DISABLE)
-        if cmd.query or cmd.param == "":
-            self._reply("JM", "1" if jogging else "0")
-            return
-        if cmd.value == 1.0:
-            if jogging:
-                return
-            if not self._refused_here({RD, DI}):
-                self.state = JOGGING_FROM_READY if is_ready(self.state) else JOGGING_FROM_DISABLE
-        elif cmd.value == 0.0:
-            if jogging:
-                self.state = READY_FROM_JOGGING if self.state == JOGGING_FROM_READY else DISABLE_FROM_JOGGING
-            else:
-                self._error(STATE_LETTER[state_group(self.state)])
-        else:
-            self._error("C")
+    def keypad_jog(self) -> None:
+        """A jog button pressed on the keypad (the only way into JOGGING: no command enters it;
+        JD leaves it, p. 30). Allowed from READY or DISABLE while the keypad is enabled (JM1)."""
+        if int(self.params["JM"]) == 1 and (is_ready(self.state) or is_disable(self.state)):
+            self.state = JOGGING_FROM_READY if is_ready(self.state) else JOGGING_FROM_DISABLE
 
     def _cmd_jd(self, cmd: SmcCommand, t: float) -> None:
         if not self._refused_here({JG}):

@@ -247,13 +247,18 @@ class Turntable:
             if st.is_ready and not st.errors:
                 return st
             if st.errors or st.is_disabled or not st.is_referenced:
-                letter = self.last_error()
-                raise StageError(self.port, "the stage stopped short of READY", state=st.state,
-                                 letter=letter, errors=st.errors)
+                raise self.stopped_short(st)
             if time.monotonic() >= deadline:
                 raise StageError(self.port, f"not READY after {timeout_s:g} s — check the stage and the "
                                  "move timeout", state=st.state, errors=st.errors)
             time.sleep(poll_s)
+
+    def stopped_short(self, st: StageStatus) -> StageError:
+        """The StageError for a status that ended short of READY: its state and error bits, and the
+        TE letter read now. The bits come from `st` itself: TS clears the positioner errors it
+        reports (the SMC100 user manual, notes under TS), so a second TS would not show them."""
+        return StageError(self.port, "the stage stopped short of READY", state=st.state,
+                          letter=self.last_error(), errors=st.errors)
 
     def stop(self, timeout_s: float = 10.0, poll_s: float = 0.05) -> StageStatus:
         """ST (stop motion), then poll until neither MOVING nor HOMING. Never raises StageError

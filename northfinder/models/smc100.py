@@ -21,8 +21,12 @@ def _fault(st: StageStatus) -> str | None:
 class Smc100Stage(Turntable, RotaryStage):
     """The SMC100 in the rotary-stage role (StageError is a StageFault: the TE letter is its reason)."""
 
+    _last_status: StageStatus | None = None
+    """The TS last read by `state`: TS clears the positioner errors it reports (user manual, TS
+    notes), so the fault is told from this reading, not from a second TS."""
+
     def state(self) -> StageState:
-        st = self.status()
+        st = self._last_status = self.status()
         return StageState(name=st.state_name, ready=st.is_ready and not st.errors, moving=st.is_moving,
                           homing=st.is_homing, referenced=st.is_referenced, fault=_fault(st))
 
@@ -47,7 +51,11 @@ class Smc100Stage(Turntable, RotaryStage):
         self.enable()
 
     def raise_fault(self, state: StageState) -> None:
-        self.wait_ready(timeout_s=0.0)  # raises StageError naming the state and the TE letter
+        """The StageError from the TS that showed the fault, with the TE letter read now."""
+        if self._last_status is None:
+            self.wait_ready(timeout_s=0.0)  # raises StageError naming the state and the TE letter
+            return
+        raise self.stopped_short(self._last_status)
 
     def identity(self) -> dict[str, Any]:
         return {"model": "smc100", "version": self.version()}
