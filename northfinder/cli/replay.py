@@ -4,8 +4,10 @@ A `find` run: decodes imu.raw and can.asc with the drivers' pure decoders, cuts 
 events log, and runs the same per-position means and estimator as the live run. An `align` run
 (its config.json says `"kind": "align-gnss"` or `"align-swaying"`): the mode's own replay
 function recomputes it from imu.raw (and gnss.nmea) and the events. Either way the result is
-compared with the run's result.json. Exit 0 for a complete run, 1 for an incomplete one, 2 for
-a directory that is not a run (or a usage error), 4 for a damaged run (a raw log cut short).
+compared with the run's result.json. A run stopped before 3 positions prints the positions it
+has. A campaign directory: every find it lists, and its statistics from the replayed finds. Exit 0
+for a complete run, 1 for an incomplete one, 2 for a directory that is not a run (or a usage
+error), 4 for a damaged run (a raw log cut short).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ ALIGN_SUMMARIES = {"align-gnss": "print_gnss_summary", "align-swaying": "print_s
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="recompute a run's result from its raw logs", description=__doc__)
-    p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory written by `northfinder find`")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (find, align) or a campaign directory")
     p.add_argument("--method", choices=bench.METHODS, help="heading method (default: the run's)")
     p.add_argument("--json", metavar="PATH", help="write the recomputed result JSON here")
     p.add_argument("--report", metavar="PNG", help="draw the report of the recomputed result here")
