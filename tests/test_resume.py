@@ -20,7 +20,9 @@ from helpers import northfinder_line, read_events, run_cli, sigint_when, start_c
 from northfinder.estimators import plan as P
 from northfinder.estimators.motion_fit import RUN_TERMS
 from northfinder.estimators.motion_sessions import session_design
+from northfinder.report import draw_report
 from northfinder.rundir import RunDir
+from northfinder.runs.find_motion import report_samples
 from northfinder.runs.find_sessions import session_motion_samples
 
 pytestmark = pytest.mark.slow
@@ -78,6 +80,13 @@ def test_ctrl_c_replay_resume_replay_and_sigma_against_an_uninterrupted_run(tmp_
     assert [s["session"] for s in motion["sessions"]] == [1, 2] and motion["join"].startswith("none")
     assert all(s["motion"] > 0 for s in motion["sessions"])  # both sessions' moves are in the fit
     assert "in 2 sessions" in resumed.stdout
+
+    fig = draw_report(res, samples=report_samples(RunDir(part, create=False)))
+    texts = [t.get_text() for ax in fig.axes for t in ax.texts]
+    assert any(t.startswith(" session 2 (resumed") for t in texts), texts  # where session 2 begins
+    import matplotlib.pyplot as plt  # after draw_report chose the Agg backend
+
+    plt.close(fig)
 
     again = run_cli("replay", str(part), "--quiet", cwd=tmp_path)
     assert again.returncode == 0 and "identical to the live result.json" in again.stdout, again.stdout

@@ -103,9 +103,8 @@ def report_samples(rd: RunDir, block: Any = None) -> dict[str, Any] | None:
     if sum(e.get("event") == "start" for e in events) > 1:
         from northfinder.runs.find_sessions import sessions_report_samples
 
-        placed = sessions_report_samples(rd, events)
-    else:
-        placed, _ = motion_samples(rd, events, block)
+        return sessions_report_samples(rd, events)
+    placed, _ = motion_samples(rd, events, block)
     start = next((e for e in events if e.get("event") == "start"), None)
     if placed is None or start is None:
         return None

@@ -124,10 +124,17 @@ def sessions_motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol
     }
 
 
-def sessions_report_samples(rd: RunDir, events: Sequence[dict[str, Any]]) -> tuple | None:
-    """(alpha_deg, omega_dps, gyro_dph, {}) of every session's placed samples one after the other
-    (report.png's sample panel), or None."""
+def sessions_report_samples(rd: RunDir, events: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
+    """report.png's samples (runs.find_motion.report_samples) of a resumed run: every session's
+    placed samples one after the other, and where each later session starts on that axis
+    (`session_starts_s`: the samples' own count, not the host time between the sessions)."""
     parts, _ = session_motion_samples(rd, events)
-    if not parts:
+    start = next((e for e in events if e.get("event") == "start"), None)
+    if not parts or start is None:
         return None
-    return (*(np.concatenate([p[k] for p in parts]) for k in range(3)), {})
+    rate_hz = float(start["imu"]["rate_hz"])
+    sizes = np.cumsum([p[0].size for p in parts])
+    starts = [(int(n) / rate_hz, int(p[3]["session"])) for n, p in zip(sizes[:-1], parts[1:], strict=True)]
+    return {"alpha_deg": np.concatenate([p[0] for p in parts]),
+            "omega_dps": np.concatenate([p[1] for p in parts]),
+            "gyro_dph": np.concatenate([p[2] for p in parts]), "rate_hz": rate_hz, "session_starts_s": starts}
