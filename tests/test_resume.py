@@ -140,3 +140,18 @@ def test_replay_of_a_campaign_directory_replays_its_finds(tmp_path):
     (out / "campaign.json").write_text(json.dumps(state))
     changed = run_cli("replay", str(out), "--quiet", cwd=tmp_path)
     assert "DIFFER from campaign.json's" in changed.stdout.splitlines()[-1], changed.stdout
+
+
+def test_replay_of_a_campaign_with_no_find_done_names_the_finds_set_aside(tmp_path):
+    """A campaign stopped in its first find lists none: replay says which find to give instead."""
+    out = tmp_path / "camp"
+    out.mkdir()
+    state = {"schema": "northfinder.campaign/1", "complete": False, "method": "exact",
+             "plan": {"repeat": 2, "steps": [{"reference_deg": 10.0}], "method": "exact"},
+             "runs": [], "failed": [{"index": 0, "run_dir": "step1-run01.failed-1", "reason": "SIGINT"}]}
+    (out / "campaign.json").write_text(json.dumps(state))
+    proc = run_cli("replay", str(out), cwd=tmp_path)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stdout.strip() == (
+        f"{out}: a campaign with no find done yet; replay one of its finds set aside "
+        f"({out / 'step1-run01.failed-1'}) or continue it with northfinder campaign --resume {out}")
