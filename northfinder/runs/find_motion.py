@@ -111,4 +111,3 @@ def report_samples(rd: RunDir, block: Any = None) -> dict[str, Any] | None:
     alpha, omega, gyro, _ = placed
     rate_hz = float(start["imu"]["rate_hz"])
     return {"alpha_deg": alpha, "omega_dps": omega, "gyro_dph": gyro, "rate_hz": rate_hz}
-
