@@ -143,7 +143,7 @@ def _replay_campaign(args: argparse.Namespace) -> int:
         flag = "--json" if args.json else "--report"
         example = cdir / campaign.run_name(0, 0)
         raise InputError(f"{flag} with a campaign directory: give one of its finds (e.g. {example})")
-    saved, replayed, again = campaign.replay_campaign(cdir)
+    saved, replayed, again = campaign.replay_campaign(cdir, method=args.method)
     if not replayed:
         aside = ", ".join(str(cdir / f["run_dir"]) for f in saved.get("failed", [])) or "none"
         print(f"{cdir}: a campaign with no find done yet; replay one of its finds set aside ({aside}) "
@@ -164,6 +164,8 @@ def _replay_campaign(args: argparse.Namespace) -> int:
     diff = differences({k: saved.get(k) for k in keys}, {k: again.get(k) for k in keys})
     stats = ("identical to campaign.json's" if not diff
              else f"DIFFER from campaign.json's in {len(diff)} values: {', '.join(diff[:6])}")
+    if args.method is not None:
+        stats = f"for method {args.method} (not compared with campaign.json's)"
     n, total = len(replayed), len(campaign.planned(saved["plan"]))
     state = "complete" if saved.get("complete") else "incomplete"
     print(f"{cdir}: {state} campaign, {n} of {total} finds replayed; the statistics from the replayed "

@@ -240,12 +240,13 @@ def is_campaign_dir(path: str | Path) -> bool:
 
 
 def replay_campaign(
-    cdir: str | Path,
+    cdir: str | Path, method: str | None = None,
 ) -> tuple[dict[str, Any], list[tuple[dict[str, Any], Any]], dict[str, Any]]:
     """Replay every find a campaign lists (runs.kinds, the find's own replay) and recompute the
     campaign's statistics from the replayed results: (campaign.json as saved, [(its entry, the
     find's Replayed)], the state with the replayed numbers and statistics). The finds set aside
-    (stopped, failed) are not in the statistics; replay them one by one."""
+    (stopped, failed) are not in the statistics; replay them one by one. `method`: the finds'
+    heading method (default: each find's own), also the one whose reported σ the statistics use."""
     from northfinder.runs.kinds import KINDS
 
     cdir = Path(cdir)
@@ -255,7 +256,7 @@ def replay_campaign(
     replayed: list[tuple[dict[str, Any], Any]] = []
     runs = []
     for entry in saved["runs"]:
-        out = KINDS["find"].replay(cdir / entry["run_dir"])
+        out = KINDS["find"].replay(cdir / entry["run_dir"], method=method)
         replayed.append((entry, out))
         r = out.result
         if r is None:
@@ -267,5 +268,7 @@ def replay_campaign(
                      "positions": r["positions_measured"], "duration_device_s": r["duration_device_s"]})
     derived = ("statistics", "steps", "mean_tilt_deg")
     again = {**{k: v for k, v in saved.items() if k not in derived}, "runs": runs}
+    if method is not None:
+        again["method"] = method
     update_statistics(again)
     return saved, replayed, json.loads(json.dumps(again))
