@@ -173,6 +173,10 @@ def _samples_panel(ax: Any, samples: dict[str, Any] | None, result: dict[str, An
             idx = np.flatnonzero(mask)[::step]
             ax.plot(t[idx], g[idx, k], ".", ms=1.0, color=f"C{2 * k + (kind == 'motion')}", alpha=alpha_pt,
                     rasterized=True, label=f"gyro {axis}, {kind} ({np.count_nonzero(mask)} samples)")
+    for t_s, session in samples.get("session_starts_s", ()):  # a resumed run: sessions one after another
+        ax.axvline(t_s, color="0.3", ls="--", lw=1.0)
+        ax.text(t_s, 0.02, f" session {session} (resumed; own gyro bias)", fontsize=7, color="0.3",
+                va="bottom", transform=ax.get_xaxis_transform())
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", markerscale=8, ncol=2)
     tw = ax.twinx()

@@ -32,6 +32,17 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
         console.print(f"run directory: {run_dir}")
 
 
+def print_positions(positions: list[dict[str, Any]], console: Any = None) -> None:
+    """The positions table alone (a partial run with too few positions for a heading)."""
+    from rich.console import Console
+
+    if console is None:
+        console = Console()
+        if not console.is_terminal:
+            console = Console(width=max(console.width, 132))
+    print_fitted(console, "positions", _POSITION_COLUMNS, position_rows({"positions": positions}))
+
+
 def _head_table(result: dict[str, Any]) -> Any:
     """Heading ± σ, tilt, latitude, device time; truth and error of a simulated run."""
     from rich.table import Table
@@ -79,8 +90,11 @@ def _plan_rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         kind = result.get("plan", "positions+motion")
         how = " (rests reached the long way round, whole turns both ways)" if kind == "sweep" else ""
         last = "the rest after the return" if n.get("through_return") else "the last"
+        sessions = motion.get("sessions")
+        where = (f" in {len(sessions)} sessions (a gyro bias each: their sample counters do not join)"
+                 if sessions else "")
         rows.append(("plan", f"{kind}{how}: every gyro sample, {n['used_device_s']:.1f} s from the "
-                     f"first dwell to {last} (dwells alone ±{dwell['heading_std_deg']:.4f}°)"))
+                     f"first dwell to {last}{where} (dwells alone ±{dwell['heading_std_deg']:.4f}°)"))
     elif motion is not None:
         rows.append(("plan", "positions (dwells only): the motion samples could not be used — "
                      f"{motion['reason']}"))

@@ -232,3 +232,43 @@ def _stopped(cdir: Path, state: dict[str, Any], total: int, why: str, exc: BaseE
     )
     out.exit_code = getattr(exc, "exit_code", 130)
     return out
+
+
+def is_campaign_dir(path: str | Path) -> bool:
+    """A directory `northfinder campaign` made (its campaign.json)."""
+    return (Path(path) / CAMPAIGN_JSON).is_file()
+
+
+def replay_campaign(
+    cdir: str | Path, method: str | None = None,
+) -> tuple[dict[str, Any], list[tuple[dict[str, Any], Any]], dict[str, Any]]:
+    """Replay every find a campaign lists (runs.kinds, the find's own replay) and recompute the
+    campaign's statistics from the replayed results: (campaign.json as saved, [(its entry, the
+    find's Replayed)], the state with the replayed numbers and statistics). The finds set aside
+    (stopped, failed) are not in the statistics; replay them one by one. `method`: the finds'
+    heading method (default: each find's own), also the one whose reported σ the statistics use."""
+    from northfinder.runs.kinds import KINDS
+
+    cdir = Path(cdir)
+    saved = json.loads((cdir / CAMPAIGN_JSON).read_text(encoding="utf-8"))
+    if saved.get("schema") != SCHEMA:
+        raise InputError(f"{cdir}: {CAMPAIGN_JSON} is not a {SCHEMA} file")
+    replayed: list[tuple[dict[str, Any], Any]] = []
+    runs = []
+    for entry in saved["runs"]:
+        out = KINDS["find"].replay(cdir / entry["run_dir"], method=method)
+        replayed.append((entry, out))
+        r = out.result
+        if r is None:
+            continue
+        runs.append({**entry, "heading_deg": r["heading_deg"], "heading_std_deg": r["heading_std_deg"],
+                     "error_deg": float(deviation_deg(r["heading_deg"], entry["reference_deg"])),
+                     "methods": {m: v["heading_deg"] for m, v in r["methods"].items()},
+                     "tilt_deg": r["tilt"]["tilt_deg"], "latitude_deg": r["latitude_deg"],
+                     "positions": r["positions_measured"], "duration_device_s": r["duration_device_s"]})
+    derived = ("statistics", "steps", "mean_tilt_deg")
+    again = {**{k: v for k, v in saved.items() if k not in derived}, "runs": runs}
+    if method is not None:
+        again["method"] = method
+    update_statistics(again)
+    return saved, replayed, json.loads(json.dumps(again))

@@ -64,7 +64,11 @@ def motion_samples(rd: RunDir, events: Sequence[dict[str, Any]], block: Any = No
 def motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol: HeadingSolution,
                       height_m: float = 0.0, block: Any = None) -> dict[str, Any]:
     """The per-sample fit's heading, 1σ and what it used (`available` False with the reason when
-    the run cannot give one)."""
+    the run cannot give one). A resumed run: runs.find_sessions."""
+    if sum(e.get("event") == "start" for e in events) > 1:
+        from northfinder.runs.find_sessions import sessions_motion_fit_result
+
+        return sessions_motion_fit_result(rd, events, sol, height_m)
     placed, why = motion_samples(rd, events, block)
     if placed is None:
         return {"available": False, "reason": why}
@@ -94,8 +98,12 @@ def motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol: Heading
 
 def report_samples(rd: RunDir, block: Any = None) -> dict[str, Any] | None:
     """The samples the per-sample fit used, for report.png's sample panel (northfinder.report), or
-    None when the run has none (plan positions, a resumed run, no gyro z)."""
+    None when the run has none (plan positions, no gyro z); a resumed run's sessions one after the other."""
     events = rd.events()
+    if sum(e.get("event") == "start" for e in events) > 1:
+        from northfinder.runs.find_sessions import sessions_report_samples
+
+        return sessions_report_samples(rd, events)
     placed, _ = motion_samples(rd, events, block)
     start = next((e for e in events if e.get("event") == "start"), None)
     if placed is None or start is None:

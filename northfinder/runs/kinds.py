@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import importlib
 import json
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +25,8 @@ class Replayed:
     complete: bool
     positions_measured: int | None = None
     positions_planned: int | None = None
+    positions: list[dict[str, Any]] | None = None
+    """A find's per-position means (result.json's `positions` rows), also when too few for a heading."""
 
 
 @dataclass(frozen=True)
@@ -41,7 +43,8 @@ class RunKind:
         fn = getattr(importlib.import_module(self.module), self.replay_function)
         if self.kind == "find":
             out = fn(run_dir, method=method)
-            return Replayed(out.result, out.complete, out.positions_measured, out.positions_planned)
+            return Replayed(out.result, out.complete, out.positions_measured, out.positions_planned,
+                            [asdict(p) for p in out.positions])
         result, complete = fn(run_dir)
         return Replayed(result, complete)
 
