@@ -288,6 +288,8 @@ def _bench_window(
         filter_settings=settings,
         imu_baudrate=bench.imu.baudrate,
         gnss_baudrate=g.baudrate,
+        imu_model=bench.imu.model,
+        gnss_model=g.model,
         configure_imu=True,
         gnss_latency_s=g.latency_s,
         config_extra={"bench": {"imu": asdict(bench.imu), "gnss": asdict(g), "source": bench.source}},

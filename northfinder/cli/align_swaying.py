@@ -198,6 +198,7 @@ def _bench_window(
         imu_port=imu.port,
         rate_hz=float(imu.rate_hz),
         baudrate=imu.baudrate,
+        imu_model=imu.model,
         duration_s=duration,
         progress=_common.DeviceTimeProgress,
         settings=settings,

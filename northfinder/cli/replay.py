@@ -1,10 +1,11 @@
 """`northfinder replay RUN_DIR`: recompute a run's result from its raw logs alone.
 
-A `find` run: decodes imu.raw and can.asc with the drivers' pure decoders, cuts them by the
-events log, and runs the same per-position means and estimator as the live run. An `align` run
-(its config.json says `"kind": "align-gnss"` or `"align-swaying"`): the mode's own replay
-function recomputes it from imu.raw (and gnss.nmea) and the events. Either way the result is
-compared with the run's result.json. Exit 0 for a complete run, 1 for an incomplete one, 2 for
+The run's kind (config.json's `kind`; a campaign directory holds campaign.json) picks its replay
+(northfinder.runkinds). A find: imu.raw and can.asc decoded by the recorded models' decoders, cut
+by the events log, the same per-position means and estimator as the live run. An align run: the
+mode's result function on imu.raw (and gnss.nmea) and the events. A campaign: each listed find
+replayed, its statistics recomputed. The result is compared with the run's own result.json (a
+campaign's campaign.json). Exit 0 for a complete run, 1 for an incomplete one, 2 for
 a directory that is not a run (or a usage error), 4 for a damaged run (a raw log cut short).
 """
 
@@ -12,14 +13,16 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from northfinder import config as bench
+from northfinder import runkinds
 from northfinder.cli import _align_summary, _common
 from northfinder.cli._summary import print_summary
 from northfinder.rundir import RESULT, RunDir, jsonable
-from northfinder.runs import kinds
+from northfinder.runkinds import CAMPAIGN_JSON
 
 INCOMPLETE_EXIT = 1
 
@@ -57,63 +60,90 @@ def differences(live: dict[str, Any], again: dict[str, Any], prefix: str = "") -
     return out
 
 
-def _replay_align(args: argparse.Namespace, kind: str) -> int:
-    replayed = kinds.KINDS[kind].replay(args.run_dir)
-    result, complete = replayed.result, replayed.complete
-    rd = RunDir(args.run_dir, create=False)
-    again = json.loads(json.dumps(jsonable(result)))
-    live_path = rd.file(RESULT)
-    if live_path.exists():
-        diff = differences(json.loads(live_path.read_text(encoding="utf-8")), again)
-        verdict = ("identical to the live result.json" if not diff
-                   else f"DIFFERS from the live result.json in {len(diff)} values: {', '.join(diff[:6])}")
-    else:
-        verdict = "no live result.json to compare with"
-    state = "complete" if complete else "incomplete"
-    heading = again.get("heading_deg")
-    sigma = again.get("heading_std_deg")
-    shown = f"{heading:.6f}° ± {sigma:.6f}°" if heading is not None and sigma is not None else "none"
-    print(f"{rd.path}: {state} {kind} run; replayed heading {shown}, {verdict}")
+def _verdict(rd: RunDir, result_file: str, again: dict[str, Any], method: str | None = None) -> str:
+    """How the recomputed result compares with the run's own (result.json; a campaign's campaign.json)."""
+    if method is not None:
+        return f"method {method}"
+    live_path = rd.file(result_file)
+    if not live_path.exists():
+        return f"no live {result_file} to compare with"
+    diff = differences(json.loads(live_path.read_text(encoding="utf-8")), again)
+    if not diff:
+        return f"identical to the live {result_file}"
+    return f"DIFFERS from the live {result_file} in {len(diff)} values: {', '.join(diff[:6])}"
+
+
+def _shown(again: dict[str, Any]) -> str:
+    heading, sigma = again.get("heading_deg"), again.get("heading_std_deg")
+    return f"{heading:.6f}° ± {sigma:.6f}°" if heading is not None and sigma is not None else "none"
+
+
+def _print_find(args: argparse.Namespace, rd: RunDir, out: runkinds.Replayed, again: dict[str, Any]) -> None:
+    head = f"{rd.path}: {_state(out)} run, {out.positions_measured} of {out.positions_planned} positions"
+    print(f"{head}; replayed heading {_shown(again)}, {_verdict(rd, RESULT, again, args.method)}")
     if not args.quiet:
-        getattr(_align_summary, ALIGN_SUMMARIES[kind])(again)
-    if args.json:
-        RunDir(Path(args.json).parent, create=True).write_json(Path(args.json).name, again)
-    return 0 if complete else INCOMPLETE_EXIT
+        print_summary(again)
+
+
+Printer = Callable[[argparse.Namespace, RunDir, runkinds.Replayed, dict[str, Any]], None]
+"""A kind's replay view: (the flags, the run directory, the replay's outcome, its result as JSON)."""
+
+
+def _print_align(kind: str) -> Printer:
+    def show(args: argparse.Namespace, rd: RunDir, out: runkinds.Replayed, again: dict[str, Any]) -> None:
+        print(f"{rd.path}: {_state(out)} {kind} run; replayed heading {_shown(again)}, "
+              f"{_verdict(rd, RESULT, again)}")
+        if not args.quiet:
+            getattr(_align_summary, ALIGN_SUMMARIES[kind])(again)
+
+    return show
+
+
+def _print_campaign(
+    args: argparse.Namespace, rd: RunDir, out: runkinds.Replayed, again: dict[str, Any]
+) -> None:
+    stats = (again.get("statistics") or {}).get(again.get("method", "exact"), {})
+    mean, std = stats.get("mean_deg"), stats.get("std_deg")
+    shown = "no statistics"
+    if mean is not None:
+        shown = f"mean deviation {mean * 60:+.3f}′" + (f", σ {std * 60:.3f}′" if std is not None else "")
+    print(f"{rd.path}: {_state(out)} campaign, {len(again.get('runs', []))} finds replayed; {shown}, "
+          f"{_verdict(rd, CAMPAIGN_JSON, again, args.method)}")
+    if not args.quiet:
+        from northfinder.cli._campaign_report import print_campaign
+
+        print_campaign(again)
+
+
+def _state(out: runkinds.Replayed) -> str:
+    return "complete" if out.complete else "incomplete"
+
+
+PRINTERS: dict[str, Printer] = {
+    "find": _print_find,
+    "align-swaying": _print_align("align-swaying"),
+    "align-gnss": _print_align("align-gnss"),
+    "campaign": _print_campaign,
+}
+"""Each kind's replay line and summary (the views; the kinds themselves are northfinder.runkinds)."""
 
 
 def run(args: argparse.Namespace) -> int:
     if args.db:
         print(_common.history_place(args.run_dir))
-    kind = kinds.kind_of(args.run_dir).kind
-    if kind != "find":
-        return _replay_align(args, kind)
-    outcome = kinds.KINDS["find"].replay(args.run_dir, method=args.method)
+    kind = runkinds.kind_of(args.run_dir)
+    out = kind.replay(args.run_dir, method=args.method)
     rd = RunDir(args.run_dir, create=False)
-    state = "complete" if outcome.complete else "incomplete"
-    head = f"{rd.path}: {state} run, {outcome.positions_measured} of {outcome.positions_planned} positions"
-    if outcome.result is None:
-        print(f"{head}; a heading needs at least 3 positions, nothing to recompute")
+    if out.result is None:
+        print(f"{rd.path}: {_state(out)} run, {out.positions_measured} of {out.positions_planned} positions; "
+              "a heading needs at least 3 positions, nothing to recompute")
         return INCOMPLETE_EXIT
-    again = json.loads(json.dumps(jsonable(outcome.result)))
-    live_path = rd.file(RESULT)
-    if args.method is None and live_path.exists():
-        diff = differences(json.loads(live_path.read_text(encoding="utf-8")), again)
-        verdict = (
-            "identical to the live result.json"
-            if not diff
-            else (f"DIFFERS from the live result.json in {len(diff)} values: {', '.join(diff[:6])}")
-        )
-    else:
-        verdict = "no live result.json to compare with" if args.method is None else f"method {args.method}"
-    print(
-        f"{head}; replayed heading {again['heading_deg']:.6f}° ± {again['heading_std_deg']:.6f}°, {verdict}"
-    )
-    if not args.quiet:
-        print_summary(again)
+    again = json.loads(json.dumps(jsonable(out.result)))
+    PRINTERS[kind.kind](args, rd, out, again)
     if args.json:
         RunDir(Path(args.json).parent, create=True).write_json(Path(args.json).name, again)
-    if args.report:
+    if args.report and kind.kind == "find":
         from northfinder.report import write_report
 
         write_report(again, args.report)
-    return 0 if outcome.complete else INCOMPLETE_EXIT
+    return 0 if out.complete else INCOMPLETE_EXIT

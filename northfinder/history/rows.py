@@ -18,9 +18,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from northfinder import runkinds
+
 ENV_UNIT = "NORTHFINDER_UNIT"
 """Environment variable giving the unit label when a run's command line had no `--unit`."""
-CAMPAIGN_JSON = "campaign.json"
+CAMPAIGN_JSON = runkinds.CAMPAIGN_JSON
 CAMPAIGN_STATE = "campaign-state.json"
 RECORD_JSON = "history.json"
 """In a run directory: the run's id and where its history row went (docs/result-schema.md)."""
@@ -103,16 +105,30 @@ def _utc(start: dict[str, Any], fallback: Path) -> str:
 
 
 def row_from_run(run_dir: str | Path, unit: str | None = None) -> dict[str, Any] | None:
-    """The history row of a completed run directory; None if it holds no complete result."""
+    """The history row of a completed run directory; None if it holds no complete result. The row
+    is its kind's (northfinder.runkinds: find_row, align_row, campaign_row)."""
     d = Path(run_dir).resolve()
-    if (d / CAMPAIGN_JSON).exists():
-        return _campaign_row(d, unit)
+    return runkinds.kind_of(d).history_row(d, unit)
+
+
+def find_row(run_dir: Path, unit: str | None = None) -> dict[str, Any] | None:
+    """A find's row: a run row with its positions and dwell."""
+    return _run_row(run_dir, unit, "find")
+
+
+def align_row(run_dir: Path, unit: str | None = None) -> dict[str, Any] | None:
+    """An alignment's row (swaying or GNSS): a run row without positions or dwell."""
+    return _run_row(run_dir, unit, None)
+
+
+def _run_row(d: Path, unit: str | None, kind_default: str | None) -> dict[str, Any] | None:
+    """The row of a run directory holding one result.json (a find when `kind_default` is "find")."""
     result = _read(d / "result.json")
     if not result or not result.get("complete", False):
         return None
     config = _read(d / "config.json") or {}
     start = _start_event(d)
-    kind = str(result.get("kind") or config.get("kind") or "find")
+    kind = str(result.get("kind") or config.get("kind") or kind_default or "find")
     parent = d.parent
     in_campaign = (parent / CAMPAIGN_JSON).exists() or (parent / CAMPAIGN_STATE).exists()
     run_cfg = (config.get("bench") or {}).get("run", {}) if kind == "find" else {}
@@ -145,8 +161,8 @@ def _campaign_unit(parent: Path) -> str | None:
     return (c or {}).get("unit") or None
 
 
-def _campaign_row(d: Path, unit: str | None) -> dict[str, Any] | None:
-    """A finished campaign: the main method's mean deviation, observed σ and mean tilt."""
+def campaign_row(d: Path, unit: str | None = None) -> dict[str, Any] | None:
+    """A finished campaign's row: the main method's mean deviation, observed σ and mean tilt."""
     c = _read(d / CAMPAIGN_JSON)
     if not c or not c.get("complete"):
         return None

@@ -46,6 +46,7 @@ from northfinder.devices.gnss import GnssFix, LocalEnu, fixes_to_arrays
 from northfinder.errors import InputError
 from northfinder.report import write_gnss_report as draw_write_gnss_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
+from northfinder.runkinds import Replayed
 from northfinder.runs import base
 from northfinder.runs.base import TruthLog, read_truth_log
 
@@ -547,6 +548,12 @@ def replay_gnss_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
     return json.loads(json.dumps(jsonable(result))), complete
 
 
+def replayed(run_dir: str | Path, method: str | None = None) -> Replayed:
+    """:func:`replay_gnss_run` as this kind's replay in the run-kind registry (no method to choose)."""
+    result, complete = replay_gnss_run(run_dir)
+    return Replayed(result, complete)
+
+
 # ---------------------------------------------------------------------------------------------
 # The report
 # ---------------------------------------------------------------------------------------------
@@ -569,6 +576,7 @@ __all__ = [
     "KIND",
     "compute_gnss_result",
     "replay_gnss_run",
+    "replayed",
     "result_from_run",
     "time_alignment",
 ]

@@ -45,6 +45,7 @@ from northfinder.devices import registry
 from northfinder.errors import DeviceError, InputError
 from northfinder.report import write_swaying_report as draw_write_swaying_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
+from northfinder.runkinds import Replayed
 from northfinder.runs import base
 from northfinder.simulate import SimScenario, SimulatorProcess
 from northfinder.stopflag import StopFlag
@@ -423,6 +424,12 @@ def replay_swaying_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
     return result, complete
 
 
+def replayed(run_dir: str | Path, method: str | None = None) -> Replayed:
+    """:func:`replay_swaying_run` as this kind's replay in the run-kind registry (no method to choose)."""
+    result, complete = replay_swaying_run(run_dir)
+    return Replayed(result, complete)
+
+
 # ---------------------------------------------------------------------------------------------
 # The report: the cone fit's own residuals (the estimator gives no heading history)
 # ---------------------------------------------------------------------------------------------
@@ -475,6 +482,7 @@ __all__ = [
     "finish",
     "parse_sway",
     "replay_swaying_run",
+    "replayed",
     "result_from_run",
     "write_swaying_report",
 ]
