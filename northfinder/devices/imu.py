@@ -104,6 +104,9 @@ class ImuDecoder(ABC):
 
     counter_period: int = 0
     """Samples after which the model's counter wraps (0: it does not)."""
+    counter_name: str = "sample counter"
+    """The model's name for its counter, in its manual's words (a result's note on an unknown gap
+    names it)."""
 
 
 class InertialStream(ABC):

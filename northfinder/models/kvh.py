@@ -55,6 +55,7 @@ class KvhLogDecoder(ImuDecoder):
     """imu.raw of a KVH run → samples (the live driver's decoder and conversion: bit-identical)."""
 
     counter_period = 128
+    counter_name = "7-bit sequence"
 
     def decode_log(self, raw: bytes, settings: dict[str, Any]) -> tuple[ImuBlock, Any]:
         return decode_imu_stream(raw, settings["rate_hz"], settings.get("rot_format", "DELTA"),

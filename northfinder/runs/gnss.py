@@ -1,15 +1,15 @@
 """`northfinder align --mode gnss`: acquisition, time alignment, result assembly and replay.
 
-What: read a KVH format-A IMU and an NMEA GNSS receiver for a window of device time, keep their
-raw bytes in the run directory as they arrive, then align with the paper's δsin/δcos filter
+What: read an IMU and a GNSS receiver (the inertial-stream and GNSS roles) for a window of device
+time, keep their raw bytes in the run directory as they arrive, then align with the paper's δsin/δcos filter
 (northfinder.align.gnss_ins.align_gnss) and, on the same data, the small-angle filter
 (northfinder.align.small_angle). The filters run once the window is complete (not live): the
 progress bar shows device time, fixes and the stream counters.
 
 Why here: the CLI (northfinder/cli/align_gnss.py) and `northfinder replay` share one function,
-:func:`compute_gnss_result`, fed from the drivers' arrays live and from the pure decoders
-(`decode_imu_stream`, `decode_nmea_log`) in replay — the same bytes give the same arrays, so the
-replayed result is bit-identical.
+:func:`compute_gnss_result`, fed from the drivers' arrays live and from the pure decoders of the
+models the run recorded (registry.decoder_for) in replay — the same bytes give the same arrays, so
+the replayed result is bit-identical.
 
 Time alignment (IMU sample index ↔ GNSS time), docs/result-schema-align.md "## gnss":
 - `data` (hardware and simulator, docs/gnss-alignment.md §12): the host estimate below refined from
@@ -521,7 +521,7 @@ def result_from_run(
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The result of a run from its window's data (live: the drivers' arrays; replay: decoded logs)."""
     truth = load_truth(rd, start)
-    imu_block, cut = base.before_unknown_gap(imu_block)
+    imu_block, cut = base.before_unknown_gap(imu_block, start["imu"].get("model"))
     last = fixes[-1].time_s - float(end["utc_ref_s"]) if fixes else None
     t0, info = time_alignment(rd, start, end, truth, last, imu_block, fixes)
     result, hist = compute_gnss_result(imu_block, fixes, start, end, truth, t0, info, complete=complete)

@@ -1,19 +1,19 @@
 """`northfinder align --mode swaying`: acquisition, result assembly, report and replay.
 
-What: read a KVH format-A IMU (gyros + accelerometers) on a swaying base for a window of device
-time, keep its bytes in the run directory as they arrive (imu.raw), then align with the
+What: read an IMU (the inertial-stream role: gyros + accelerometers) on a swaying base for a window
+of device time, keep its bytes in the run directory as they arrive (imu.raw), then align with the
 inertial-frame cone fit (northfinder.align.swaying) and, on the same samples, the static analytic
 coarse alignment (northfinder.align.coarse) for contrast.
 
 Why here: the CLI (northfinder/cli/align_swaying.py) and `northfinder replay` share one function,
-:func:`compute_swaying_result`, fed from the driver's arrays live and from the pure decoder
-(`decode_imu_stream`) in replay — the same bytes give the same arrays, so the replayed result is
-bit-identical.
+:func:`compute_swaying_result`, fed from the driver's arrays live and from the pure decoder of the
+model the run recorded (registry.decoder_for) in replay — the same bytes give the same arrays, so the
+replayed result is bit-identical.
 
 Truth of a simulated run (docs/simulator.md, "Time alignment of the IMU"): firmware-sim's truth log
-names the absolute sample k0 (sequence number sequence0) of the first frame it handed to this
-client, ending at device time t0_device_s. The first frame decoded (index 0, sequence s) is sample
-k_first = k0 + ((s − sequence0) mod 128), so the sample with index u ends at
+names the absolute sample k0 (the model's counter value sequence0) of the first frame it handed to
+this client, ending at device time t0_device_s. The first frame decoded (index 0, counter s) is sample
+k_first = k0 + ((s − sequence0) mod the counter's period), so the sample with index u ends at
 t0_device_s + (k_first − k0 + u)/rate. The truth heading is the logged heading at the end of the
 last sample used — the instant the estimator's attitude refers to.
 """
@@ -42,6 +42,7 @@ from northfinder.align.swaying import (
 from northfinder.config import SwayingConfig
 from northfinder.constants import DEG, STANDARD_GRAVITY_M_S2, wrap_deg_180
 from northfinder.devices import registry
+from northfinder.devices.imu import ImuAxes
 from northfinder.errors import DeviceError, InputError
 from northfinder.report import write_swaying_report as draw_write_swaying_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
@@ -174,17 +175,20 @@ class Window:
 
 
 def check_stream(block: Any, port: str) -> None:
-    """Refuse early what the alignment cannot use: no valid accelerometers (KVH status bits 4–6,
-    docs/PROTOCOLS.md §2, or all-zero fields) and gyros at the end of their range."""
-    status = np.asarray(block.status, dtype=np.int64)
-    if len(status) and (np.mean(((status >> 4) & 0b111) == 0b111) < 0.5 or not np.any(block.accel_g)):
+    """Refuse early what the alignment cannot use: accelerometers the IMU flags not valid (the
+    block's per-axis validity, ImuBlock.valid, whatever the model's status words), or all zero, and
+    gyros at the end of their range."""
+    axes = ImuAxes.from_valid(block.valid) if len(block) else None
+    accel = block.accel_g[np.isfinite(block.accel_g)]
+    if axes is not None and (axes.accel != "xyz" or not np.any(accel)):
         raise DeviceError(
             "imu",
             port,
-            "reports no valid accelerometers (status bits 4–6 clear): the swaying "
-            "alignment needs a 3-axis gyro + accelerometer IMU (KVH 1750/1760/1775)",
+            f"reports no valid accelerometers ({axes.describe()} in its samples' validity): the swaying "
+            "alignment needs an IMU with three gyros and three accelerometers",
         )
-    peak = float(np.max(np.abs(block.gyro_rad_s))) / DEG if len(status) else 0.0
+    gyro = np.abs(block.gyro_rad_s[np.isfinite(block.gyro_rad_s)])
+    peak = float(np.max(gyro)) / DEG if len(gyro) else 0.0
     if peak >= GYRO_SATURATION_FRACTION * KVH_GYRO_RANGE_DPS:
         raise InputError(
             f"gyro reached {peak:.1f} °/s, the ±{KVH_GYRO_RANGE_DPS:g} °/s range of the IMU on "
@@ -396,7 +400,7 @@ def result_from_run(
     rd: RunDir, block: Any, start: dict[str, Any], end: dict[str, Any], complete: bool
 ) -> tuple[dict[str, Any], Any]:
     """The result of a run from its window's samples (live: the driver's arrays; replay: decoded)."""
-    block, cut = base.before_unknown_gap(block)
+    block, cut = base.before_unknown_gap(block, start["imu"].get("model"))
     truth = None
     if start.get("simulate"):
         last = int(end["imu"]["last_index"]) if cut is None else int(block.sample_index[-1])
