@@ -339,15 +339,8 @@ def compute_gnss_result(
     """
     flt = start["filter"]
     rate = float(start["imu"]["rate_hz"])
-    if len(imu_block) == 0:
-        raise InputError("no IMU samples were read; nothing to align")
-    if len(fixes) < 2:
-        raise InputError(
-            f"only {len(fixes)} GNSS fixes were read; check the receiver has a fix (antenna, sky view)"
-        )
+    imu, gnss = _filter_inputs(imu_block, fixes, rate, t0_index0_s, float(end["utc_ref_s"]), flt)
     idx = imu_block.sample_index
-    imu = ImuSeries(rate, imu_block.gyro_rad_s, imu_block.accel_g, idx, t0_index0_s + float(idx[0]) / rate)
-    gnss = gnss_series(fixes, float(end["utc_ref_s"]), flt["pos_std_m"], flt["vel_std_m_s"])
     t_start_imu = imu.t0_s
     t_end_imu = t0_index0_s + (float(idx[-1]) + 1.0) / rate
     check_still_start(fixes, gnss.t_s, t_start_imu, GnssAlignConfig.level_s)
@@ -380,19 +373,45 @@ def compute_gnss_result(
         "lever_arm_prior_m": list(flt["lever_arm_prior_m"]),
         "lever_arm_prior_std_m": float(flt["lever_arm_std_m"]),
         "imu_noise": dict(main.extra),
-        "position": dict(
-            zip(
-                ("lat_deg", "lon_deg", "height_m"),
-                (float(v) for v in LocalEnu(*gnss.origin).from_enu(main.pos_enu_m)),
-                strict=True,
-            )
-        ),
+        "position": _geodetic(gnss.origin, main.pos_enu_m),
         "time_alignment": alignment,
         "imu": {**end["imu"], "rate_hz": rate, "window_s": [t_start_imu, t_end_imu]},
         "gnss": {**end["gnss"], "updates": len(h.t_s), "origin": list(gnss.origin)},
         "methods": {main.method: _method_dict(main, None), "small_angle": _method_dict(small, None)},
     }
-    hist: dict[str, Any] = {
+    hist = _report_history(main, small, t_start_imu)
+    if truth is not None:
+        _add_truth(result, hist, truth, main, small, gnss.origin, t_start_imu, truth_start)
+    return result, hist
+
+
+def _filter_inputs(
+    imu_block: Any, fixes: list[GnssFix], rate: float, t0_index0_s: float, utc_ref_s: float,
+    flt: dict[str, Any],
+) -> tuple[ImuSeries, GnssSeries]:
+    """The window as both filters take it: IMU samples on GNSS time (index 0 starts at
+    `t0_index0_s`) and the fixes with their σ; InputError when either is too short to align."""
+    if len(imu_block) == 0:
+        raise InputError("no IMU samples were read; nothing to align")
+    if len(fixes) < 2:
+        raise InputError(
+            f"only {len(fixes)} GNSS fixes were read; check the receiver has a fix (antenna, sky view)"
+        )
+    idx = imu_block.sample_index
+    imu = ImuSeries(rate, imu_block.gyro_rad_s, imu_block.accel_g, idx, t0_index0_s + float(idx[0]) / rate)
+    return imu, gnss_series(fixes, utc_ref_s, flt["pos_std_m"], flt["vel_std_m_s"])
+
+
+def _geodetic(origin: Any, pos_enu_m: np.ndarray) -> dict[str, float]:
+    """The filter's final ENU position as latitude, longitude, ellipsoidal height."""
+    values = (float(v) for v in LocalEnu(*origin).from_enu(pos_enu_m))
+    return dict(zip(("lat_deg", "lon_deg", "height_m"), values, strict=True))
+
+
+def _report_history(main: GnssAlignResult, small: GnssAlignResult, t_start_imu: float) -> dict[str, Any]:
+    """Both filters' heading histories from the window's start, for report.png (not in the result)."""
+    h = main.history
+    return {
         "t_s": h.t_s - t_start_imu,
         "heading_deg": h.heading_deg,
         "heading_std_deg": h.heading_std_deg,
@@ -400,9 +419,6 @@ def compute_gnss_result(
         "small_t_s": small.history.t_s - t_start_imu,
         "small_heading_deg": small.history.heading_deg,
     }
-    if truth is not None:
-        _add_truth(result, hist, truth, main, small, gnss.origin, t_start_imu, truth_start)
-    return result, hist
 
 
 # ---------------------------------------------------------------------------------------------

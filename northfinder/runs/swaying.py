@@ -39,7 +39,7 @@ from northfinder.align.swaying import (
     grade_bias_prior,
     minimum_duration_s,
 )
-from northfinder.config import SwayingConfig
+from northfinder.config import ImuConfig, SwayingConfig
 from northfinder.constants import DEG, STANDARD_GRAVITY_M_S2, wrap_deg_180
 from northfinder.devices import registry
 from northfinder.devices.imu import ImuAxes
@@ -199,46 +199,42 @@ def check_stream(block: Any, port: str) -> None:
 def acquire(
     rd: RunDir,
     *,
-    imu_port: str,
-    rate_hz: float,
+    imu: ImuConfig,
     duration_s: float,
     settings: dict[str, Any],
-    baudrate: int = 921600,
-    imu_model: str = "",
     configure_imu: bool = False,
     progress: base.WindowProgress | None = None,
     config_extra: dict[str, Any] | None = None,
 ) -> Window:
-    """Read `duration_s` device seconds (samples + lost samples over the rate) from the IMU; raw bytes
-    go to imu.raw as they arrive, the window's index range to events.jsonl. A signal ends the
-    reading early (`Window.stop` says which). `settings`: what the estimator needs (latitude,
-    method, sway period, simulate) — stored in the start event so replay finds it."""
+    """Read `duration_s` device seconds (samples + lost samples over the rate) from the IMU of the
+    `[imu]` section `imu` (its model, port, rate …); raw bytes go to imu.raw as they arrive, the
+    window's index range to events.jsonl. A signal ends the reading early (`Window.stop` says
+    which). `settings`: what the estimator needs (latitude, method, sway period, simulate) — stored
+    in the start event so replay finds it."""
     rd.write_json(CONFIG, {"kind": KIND, "argv": sys.argv, **settings, **(config_extra or {})})
     stop = StopFlag()
     blocks: list[Any] = []
+    port = imu.port
     with stop.installed():
         with base.guard(
-            "imu",
-            imu_port,
-            lambda: registry.open_device("imu", {"model": imu_model, "port": imu_port, "baudrate": baudrate},
-                                         rd.imu_raw_path, rate_hz=rate_hz),
-        ) as imu:
+            "imu", port, lambda: registry.open_device("imu", imu, rd.imu_raw_path, rate_hz=float(imu.rate_hz))
+        ) as device:
             if configure_imu:
-                imu.configure_for_run(None)  # read rate and gyro format back: the decoder must know them
-            start = base.start_event(KIND, duration_s, imu_port, imu, **settings)
+                device.configure_for_run(None)  # read rate and gyro format back: the decoder must know them
+            start = base.start_event(KIND, duration_s, port, device, **settings)
             rd.log_event(start)
             with base.window_view(progress, duration_s) as view:
                 for done_s in base.read_imu_window(
-                    imu, duration_s, stop, blocks, check=lambda b: check_stream(b, imu_port)
+                    device, duration_s, stop, blocks, check=lambda b: check_stream(b, port)
                 ):
-                    st = imu.stats
+                    st = device.stats
                     view.show(
                         done_s,
                         f"{done_s:6.1f}/{duration_s:g} s  lost {st.lost_samples}  bad CRC {st.bad_crc}  "
                         f"resyncs {st.resyncs}",
                     )
-            rate = imu.rate_hz
-            stats = imu.stats.as_dict()
+            rate = device.rate_hz
+            stats = device.stats.as_dict()
     # port closed: imu.raw is complete on disk
     complete = not stop
     if not blocks:
@@ -332,8 +328,6 @@ def compute_swaying_result(
         height_m=float(start.get("height_m", 0.0)),
         **prior,
     )
-    coarse = coarse_align(block.gyro_rad_s, block.accel_g, rate, lat)
-    still = bool(coarse.diagnostics["base_still"])
     main = {
         "heading_deg": sol.heading_deg,
         "heading_std_deg": sol.heading_std_deg,
@@ -354,17 +348,7 @@ def compute_swaying_result(
         "minimum_duration_s": minimum_duration_s(float(start["max_sway_period_s"])),
         "methods": {
             sol.method: dict(main),
-            "coarse": {
-                "heading_deg": coarse.heading_deg,
-                "heading_std_deg": coarse.heading_std_deg if still else None,
-                "pitch_deg": coarse.pitch_deg,
-                "roll_deg": coarse.roll_deg,
-                "note": "static analytic coarse alignment (window means); σ: the still-base noise limit"
-                if still
-                else "static analytic coarse alignment (window means); no σ: the base moves, the "
-                "window-mean rate carries the sway, not the Earth rate",
-                **coarse.diagnostics,
-            },
+            "coarse": _coarse_method(block, rate, lat),
         },
         "sigma_covers": sigma_covers(prior),
         "diagnostics": sol.diagnostics,
@@ -377,6 +361,24 @@ def compute_swaying_result(
         for m in result["methods"].values():
             m["error_deg"] = float(wrap_deg_180(m["heading_deg"] - truth["heading_deg"]))
     return json.loads(json.dumps(jsonable(result), allow_nan=False)), sol
+
+
+def _coarse_method(block: Any, rate_hz: float, latitude_deg: float) -> dict[str, Any]:
+    """The contrast method on the same samples: the static analytic coarse alignment (window means),
+    with a σ only when the base was still."""
+    coarse = coarse_align(block.gyro_rad_s, block.accel_g, rate_hz, latitude_deg)
+    still = bool(coarse.diagnostics["base_still"])
+    return {
+        "heading_deg": coarse.heading_deg,
+        "heading_std_deg": coarse.heading_std_deg if still else None,
+        "pitch_deg": coarse.pitch_deg,
+        "roll_deg": coarse.roll_deg,
+        "note": "static analytic coarse alignment (window means); σ: the still-base noise limit"
+        if still
+        else "static analytic coarse alignment (window means); no σ: the base moves, the "
+        "window-mean rate carries the sway, not the Earth rate",
+        **coarse.diagnostics,
+    }
 
 
 def sigma_covers(prior: dict[str, float]) -> dict[str, Any]:
