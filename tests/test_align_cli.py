@@ -107,7 +107,8 @@ def _open_probe(role: str, succeed: bool):
     def open_(section, log_path, options):
         if succeed:
             return _ProbeImu(options)
-        raise DeviceError(role, section["port"], f"the probe-{role} model was opened")
+        port = section["port"] if isinstance(section, dict) else section.port  # a dict or a config section
+        raise DeviceError(role, port, f"the probe-{role} model was opened")
 
     return open_
 
