@@ -13,7 +13,7 @@ import math
 import os
 import socket
 import uuid
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -113,36 +113,43 @@ def row_from_run(run_dir: str | Path, unit: str | None = None) -> dict[str, Any]
 
 def find_row(run_dir: Path, unit: str | None = None) -> dict[str, Any] | None:
     """A find's row: a run row with its positions and dwell."""
-    return _run_row(run_dir, unit, "find")
+    return _run_row(run_dir, unit, "find", _find_columns)
+
+
+def _find_columns(result: dict[str, Any], config: dict[str, Any], start: dict[str, Any]) -> dict[str, Any]:
+    """A find's own columns: positions measured and the dwell (the bench's [run], else the start event)."""
+    run_cfg = (config.get("bench") or {}).get("run", {})
+    return {"positions": result.get("positions_measured"),
+            "dwell_s": run_cfg.get("dwell_s", start.get("dwell_s"))}
 
 
 def align_row(run_dir: Path, unit: str | None = None) -> dict[str, Any] | None:
     """An alignment's row (swaying or GNSS): a run row without positions or dwell."""
-    return _run_row(run_dir, unit, None)
+    return _run_row(run_dir, unit, None, lambda *_: {"positions": None, "dwell_s": None})
 
 
-def _run_row(d: Path, unit: str | None, kind_default: str | None) -> dict[str, Any] | None:
-    """The row of a run directory holding one result.json (a find when `kind_default` is "find")."""
+def _run_row(
+    d: Path, unit: str | None, kind_default: str | None, columns: Callable[..., dict[str, Any]]
+) -> dict[str, Any] | None:
+    """The row of a run directory holding one result.json; `columns(result, config, start event)`
+    gives the kind's own columns (positions, dwell)."""
     result = _read(d / "result.json")
     if not result or not result.get("complete", False):
         return None
     config = _read(d / "config.json") or {}
     start = _start_event(d)
-    kind = str(result.get("kind") or config.get("kind") or kind_default or "find")
     parent = d.parent
     in_campaign = (parent / CAMPAIGN_JSON).exists() or (parent / CAMPAIGN_STATE).exists()
-    run_cfg = (config.get("bench") or {}).get("run", {}) if kind == "find" else {}
     return {
         **identity(d),
         "time_utc": _utc(start, d / "result.json"),
-        "kind": kind,
+        "kind": str(result.get("kind") or config.get("kind") or kind_default or "find"),
         "unit": unit
         or unit_from_argv(config.get("argv"))
         or _campaign_unit(parent)
         or os.environ.get(ENV_UNIT, ""),
         "latitude_deg": result.get("latitude_deg"),
-        "positions": result.get("positions_measured") if kind == "find" else None,
-        "dwell_s": run_cfg.get("dwell_s", start.get("dwell_s")) if kind == "find" else None,
+        **columns(result, config, start),
         "duration_s": result.get("duration_device_s"),
         "method": result.get("method"),
         "heading_deg": result.get("heading_deg"),
