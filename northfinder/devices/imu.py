@@ -119,6 +119,9 @@ class InertialStream(ABC):
     """The registry name of the model (set by registry.open_device)."""
     rate_hz: float
     reconnects: int = 0
+    gyro_range_dps: float | None = None
+    """The gyros' input range [°/s] (±), as the model's data sheet gives it; None: not known (a run
+    then cannot say a sway saturates it before the estimator does)."""
 
     # -- what a model implements -------------------------------------------------------------
     @abstractmethod

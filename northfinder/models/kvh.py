@@ -19,6 +19,8 @@ from northfinder.models._section import value
 class KvhImu(Imu, InertialStream):
     """The KVH in the inertial-stream role."""
 
+    gyro_range_dps = 490.0  # ±490 °/s, the 1750/1760/1775 data sheets (align.swaying.KVH_GYRO_RANGE_DPS)
+
     def identity(self) -> dict[str, Any]:
         return {"model": "kvh", "axes": self.axes.describe(), "rate_hz": self.rate_hz}
 

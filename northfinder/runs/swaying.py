@@ -33,7 +33,6 @@ import numpy as np
 
 from northfinder.align.coarse import coarse_align
 from northfinder.align.swaying import (
-    KVH_GYRO_RANGE_DPS,
     METHODS,
     align_swaying_block,
     grade_bias_prior,
@@ -174,10 +173,10 @@ class Window:
     stop: StopFlag
 
 
-def check_stream(block: Any, port: str) -> None:
+def check_stream(block: Any, port: str, gyro_range_dps: float | None) -> None:
     """Refuse early what the alignment cannot use: accelerometers the IMU flags not valid (the
     block's per-axis validity, ImuBlock.valid, whatever the model's status words), or all zero, and
-    gyros at the end of their range."""
+    gyros at the end of their range (the model's `gyro_range_dps`; None: not known, not checked)."""
     axes = ImuAxes.from_valid(block.valid) if len(block) else None
     accel = block.accel_g[np.isfinite(block.accel_g)]
     if axes is not None and (axes.accel != "xyz" or not np.any(accel)):
@@ -189,9 +188,9 @@ def check_stream(block: Any, port: str) -> None:
         )
     gyro = np.abs(block.gyro_rad_s[np.isfinite(block.gyro_rad_s)])
     peak = float(np.max(gyro)) / DEG if len(gyro) else 0.0
-    if peak >= GYRO_SATURATION_FRACTION * KVH_GYRO_RANGE_DPS:
+    if gyro_range_dps is not None and peak >= GYRO_SATURATION_FRACTION * gyro_range_dps:
         raise InputError(
-            f"gyro reached {peak:.1f} °/s, the ±{KVH_GYRO_RANGE_DPS:g} °/s range of the IMU on "
+            f"gyro reached {peak:.1f} °/s, the ±{gyro_range_dps:g} °/s range of the IMU on "
             f"{port}: the sway saturates the gyro — align in calmer sea or with a wider-range IMU"
         )
 
@@ -224,8 +223,9 @@ def acquire(
             start = base.start_event(KIND, duration_s, port, device, **settings)
             rd.log_event(start)
             with base.window_view(progress, duration_s) as view:
+                gyro_range = device.gyro_range_dps
                 for done_s in base.read_imu_window(
-                    device, duration_s, stop, blocks, check=lambda b: check_stream(b, port)
+                    device, duration_s, stop, blocks, check=lambda b: check_stream(b, port, gyro_range)
                 ):
                     st = device.stats
                     view.show(
