@@ -46,11 +46,10 @@ def _resolve(target: str) -> Any:
 
 @dataclass(frozen=True)
 class RunKind:
-    """One kind of run: its name, the command that makes it, the file holding its live result, and
-    its four functions by import path ("module:function")."""
+    """One kind of run: its name, the file holding its live result (what a replay is compared with),
+    and its four functions by import path ("module:function")."""
 
     kind: str
-    label: str
     result_file: str
     measure_at: str
     compute_at: str
@@ -79,16 +78,16 @@ class RunKind:
 KINDS: dict[str, RunKind] = {
     k.kind: k
     for k in (
-        RunKind("find", "find", "result.json",
+        RunKind("find", "result.json",
                 "northfinder.runs.find:run_find", "northfinder.runs.find:compute_result",
                 "northfinder.runs.find:replayed", "northfinder.history.rows:find_row"),
-        RunKind("align-swaying", "align --mode swaying", "result.json",
+        RunKind("align-swaying", "result.json",
                 "northfinder.runs.swaying:acquire", "northfinder.runs.swaying:result_from_run",
                 "northfinder.runs.swaying:replayed", "northfinder.history.rows:align_row"),
-        RunKind("align-gnss", "align --mode gnss", "result.json",
+        RunKind("align-gnss", "result.json",
                 "northfinder.runs.gnss_live:acquire", "northfinder.runs.gnss:result_from_run",
                 "northfinder.runs.gnss:replayed", "northfinder.history.rows:align_row"),
-        RunKind("campaign", "campaign", CAMPAIGN_JSON,
+        RunKind("campaign", CAMPAIGN_JSON,
                 "northfinder.runs.campaign:run_campaign", "northfinder.runs.campaign:update_statistics",
                 "northfinder.runs.campaign:replayed", "northfinder.history.rows:campaign_row"),
     )

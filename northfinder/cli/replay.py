@@ -21,8 +21,7 @@ from northfinder import config as bench
 from northfinder import runkinds
 from northfinder.cli import _align_summary, _common
 from northfinder.cli._summary import print_summary
-from northfinder.rundir import RESULT, RunDir, jsonable
-from northfinder.runkinds import CAMPAIGN_JSON
+from northfinder.rundir import RunDir, jsonable
 
 INCOMPLETE_EXIT = 1
 
@@ -80,7 +79,8 @@ def _shown(again: dict[str, Any]) -> str:
 
 def _print_find(args: argparse.Namespace, rd: RunDir, out: runkinds.Replayed, again: dict[str, Any]) -> None:
     head = f"{rd.path}: {_state(out)} run, {out.positions_measured} of {out.positions_planned} positions"
-    print(f"{head}; replayed heading {_shown(again)}, {_verdict(rd, RESULT, again, args.method)}")
+    verdict = _verdict(rd, runkinds.KINDS["find"].result_file, again, args.method)
+    print(f"{head}; replayed heading {_shown(again)}, {verdict}")
     if not args.quiet:
         print_summary(again)
 
@@ -92,7 +92,7 @@ Printer = Callable[[argparse.Namespace, RunDir, runkinds.Replayed, dict[str, Any
 def _print_align(kind: str) -> Printer:
     def show(args: argparse.Namespace, rd: RunDir, out: runkinds.Replayed, again: dict[str, Any]) -> None:
         print(f"{rd.path}: {_state(out)} {kind} run; replayed heading {_shown(again)}, "
-              f"{_verdict(rd, RESULT, again)}")
+              f"{_verdict(rd, runkinds.KINDS[kind].result_file, again)}")
         if not args.quiet:
             getattr(_align_summary, ALIGN_SUMMARIES[kind])(again)
 
@@ -108,7 +108,7 @@ def _print_campaign(
     if mean is not None:
         shown = f"mean deviation {mean * 60:+.3f}′" + (f", σ {std * 60:.3f}′" if std is not None else "")
     print(f"{rd.path}: {_state(out)} campaign, {len(again.get('runs', []))} finds replayed; {shown}, "
-          f"{_verdict(rd, CAMPAIGN_JSON, again, args.method)}")
+          f"{_verdict(rd, runkinds.KINDS['campaign'].result_file, again, args.method)}")
     if not args.quiet:
         from northfinder.cli._campaign_report import print_campaign
 
