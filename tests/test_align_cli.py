@@ -3,10 +3,15 @@ behind (issue 12's rough edges on the align side)."""
 
 from __future__ import annotations
 
+import os
+
 import pytest
 from helpers import northfinder_line
 
 from northfinder.cli import main
+from northfinder.devices import registry
+from northfinder.devices.registry import ModelSpec
+from northfinder.errors import DeviceError
 
 
 def test_align_help_describes_both_modes_and_every_simulator_flag(capsys):
@@ -78,3 +83,72 @@ def test_the_bench_file_sets_the_align_defaults_and_flags_override_them(tmp_path
     assert main(["align", "--mode", "gnss", "--config", str(cfg), "--out", str(out)]) == 2
     line = northfinder_line(capsys.readouterr().err)
     assert "[gnss_alignment] duration_s = 5.0 is not allowed; use at least 10 device seconds" in line
+
+
+# -- the models bench.toml names reach the align runs on hardware ------------------------------------
+class _ProbeImu:
+    """An IMU model that opens (so the GNSS receiver is opened next) and does nothing else."""
+
+    def __init__(self, options):
+        self._transport = options.get("transport")
+
+    def configure_for_run(self, rate_hz):
+        """Nothing to configure."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self._transport is not None:
+            self._transport.close()
+
+
+def _open_probe(role: str, succeed: bool):
+    def open_(section, log_path, options):
+        if succeed:
+            return _ProbeImu(options)
+        port = section["port"] if isinstance(section, dict) else section.port  # a dict or a config section
+        raise DeviceError(role, port, f"the probe-{role} model was opened")
+
+    return open_
+
+
+PROBE_SWAYING_IMU = ModelSpec("imu", "probe-imu", _open_probe("imu", succeed=False))
+PROBE_GNSS_IMU = ModelSpec("imu", "probe-imu", _open_probe("imu", succeed=True))
+PROBE_GNSS = ModelSpec("gnss", "probe-gnss", _open_probe("gnss", succeed=False))
+
+
+@pytest.fixture
+def probe_models(monkeypatch):
+    """Register this module's probe models as built-ins for one test (the registry loads a built-in
+    by import path; this test module is importable by its name from tests/)."""
+    def register(role: str, name: str, attr: str) -> None:
+        monkeypatch.setitem(registry.BUILTIN, f"{role}/{name}", f"{__name__}:{attr}")
+
+    yield register
+    monkeypatch.undo()
+    registry.refresh()
+
+
+def test_align_swaying_on_hardware_opens_the_imu_model_of_bench_toml(tmp_path, capsys, probe_models):
+    probe_models("imu", "probe-imu", "PROBE_SWAYING_IMU")
+    cfg = tmp_path / "bench.toml"
+    cfg.write_text(f'[imu]\nmodel = "probe-imu"\nport = "{tmp_path / "imu"}"\n[site]\nlatitude_deg = 40.0\n')
+    assert main(["align", "--mode", "swaying", "--config", str(cfg), "--out", str(tmp_path / "run")]) == 3
+    assert "the probe-imu model was opened" in northfinder_line(capsys.readouterr().err)
+
+
+def test_align_gnss_on_hardware_opens_the_imu_and_gnss_models_of_bench_toml(tmp_path, capsys, probe_models):
+    probe_models("imu", "probe-imu", "PROBE_GNSS_IMU")
+    probe_models("gnss", "probe-gnss", "PROBE_GNSS")
+    fds = [os.openpty() for _ in range(2)]  # real ports: the run opens its stamped transports on them
+    try:
+        imu_port, gnss_port = (os.ttyname(slave) for _, slave in fds)
+        cfg = tmp_path / "bench.toml"
+        cfg.write_text(f'[imu]\nmodel = "probe-imu"\nport = "{imu_port}"\n'
+                       f'[gnss]\nmodel = "probe-gnss"\nport = "{gnss_port}"\n')
+        assert main(["align", "--mode", "gnss", "--config", str(cfg), "--out", str(tmp_path / "run")]) == 3
+    finally:
+        for fd in (fd for pair in fds for fd in pair):
+            os.close(fd)
+    assert "the probe-gnss model was opened" in northfinder_line(capsys.readouterr().err)

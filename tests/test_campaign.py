@@ -105,6 +105,20 @@ def test_simulated_campaign_two_headings_table_figure_and_history(tmp_path):
     assert sorted(r["heading_deg"] for r in finds) == sorted(r["heading_deg"] for r in c["runs"])
     again = run_cli(*_campaign_argv(tmp_path, out), cwd=tmp_path)
     assert again.returncode == 2 and "--resume" in only_line(again.stderr)
+    # the campaign is a kind of run (northfinder.runkinds): replay replays each find and recomputes
+    # campaign.json's records and statistics, identical to the live ones …
+    replayed = run_cli("replay", str(out), "--quiet", cwd=tmp_path, timeout_s=300)
+    assert replayed.returncode == 0, replayed.stderr[-3000:]
+    n = REPEAT * len(HEADINGS)
+    assert f"complete campaign, {n} of {n} finds replayed" in replayed.stdout
+    assert "statistics from the replayed finds are identical to campaign.json's" in replayed.stdout, \
+        replayed.stdout
+    # … and says where a campaign.json no longer matches its finds
+    c["statistics"]["exact"]["mean_deg"] += 1e-9
+    (out / "campaign.json").write_text(json.dumps(c, indent=2))
+    tampered = run_cli("replay", str(out), "--quiet", cwd=tmp_path, timeout_s=300)
+    assert "DIFFER from campaign.json's in 1 values: statistics.exact.mean_deg" in tampered.stdout, \
+        tampered.stdout
 
 
 def test_ctrl_c_mid_find_then_resume_repeats_and_loses_nothing(tmp_path):

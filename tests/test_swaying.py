@@ -291,9 +291,10 @@ def test_imu_without_accelerometers():
     with pytest.raises(InputError) as exc:
         align_swaying(gyro, np.zeros_like(accel), RATE_HZ, LAT)
     assert "accelerometer" in _one_line(exc)
-    status = np.full(gyro.shape[0], 0x07, np.uint8)  # gyro valid bits only (PROTOCOLS.md §2)
+    valid = np.zeros((gyro.shape[0], 6), bool)
+    valid[:, :3] = True  # the IMU flags its gyros valid, its accelerometers not (ImuBlock.valid)
     with pytest.raises(InputError) as exc:
-        align_swaying(gyro, accel, RATE_HZ, LAT, status=status)
+        align_swaying(gyro, accel, RATE_HZ, LAT, valid=valid)
     assert "accelerometer" in _one_line(exc)
     with pytest.raises(InputError):
         coarse_align(gyro, np.zeros_like(accel), RATE_HZ, LAT)

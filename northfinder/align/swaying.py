@@ -534,7 +534,7 @@ def _checked_inputs(
     rate_hz: float,
     latitude_deg: float,
     gyro_is_delta: bool,
-    status: np.ndarray | None,
+    valid: np.ndarray | None,
     method: str,
     gyro_range_dps: float,
     accel_range_g: float,
@@ -552,12 +552,12 @@ def _checked_inputs(
         raise InputError(f"unknown swaying method '{method}': use one of {', '.join(METHODS)}")
     if latitude_problem(latitude_deg):
         raise InputError(f"latitude {latitude_deg:g}: {LATITUDE_ADVICE}")
-    _check_status(status)
+    _check_valid(valid)
     if not np.all(np.isfinite(gyro)) or not np.all(np.isfinite(accel_g)):
         raise InputError("IMU data contain NaN or infinite values: check the driver's decoding")
     if not np.any(accel_g):
         raise InputError("the IMU delivers no accelerometer data (all zero): the swaying alignment needs "
-                         "a 3-axis accelerometer — use a KVH 1750/1760/1775 with accelerometers")
+                         "a 3-axis accelerometer — use an IMU with accelerometers")
     rate = gyro if not gyro_is_delta else gyro / (1.0 / rate_hz)  # per-sample delta angles → rad/s
     peak_dps = np.max(np.abs(rate), axis=0) / DEG
     if np.any(peak_dps >= 0.999 * gyro_range_dps):
@@ -577,7 +577,7 @@ def align_swaying(
     *,
     gyro_is_delta: bool = False,
     sample_index: np.ndarray | None = None,
-    status: np.ndarray | None = None,
+    valid: np.ndarray | None = None,
     method: str = "cone",
     max_sway_period_s: float = 10.0,
     height_m: float = 0.0,
@@ -593,8 +593,9 @@ def align_swaying(
     Inputs are what the IMU driver delivers (`ImuBlock`): `gyro` [n,3] as rates [rad/s]
     (`gyro_rad_s`) or, with ``gyro_is_delta``, delta angles [rad] per sample; `accel_g` [n,3]
     specific force in g (1 g = 9.80665 m/s²) averaged over each sample interval; `rate_hz` the
-    sample rate. `method`: "cone" (constrained fit, default), "cone-gls" (plus a noise-weighted
-    GLS step, the batch form of a Kalman fine alignment), "circle" (the paper's free circle fit).
+    sample rate; `valid` bool [n,6] the IMU's own per-axis validity (`ImuBlock.valid`). `method`:
+    "cone" (constrained fit, default), "cone-gls" (plus a noise-weighted GLS step, the batch form of
+    a Kalman fine alignment), "circle" (the paper's free circle fit).
     `max_sway_period_s` sets the smoothing window (4 periods) that rejects sway;
     `gyro_bias_dph` / `accel_bias_ug` are 1σ priors of the turn-on biases (they cannot be
     separated from north and are only added to the reported 1σ; 0 = white noise only);
@@ -605,7 +606,7 @@ def align_swaying(
     Raises InputError for input that cannot give a meaningful heading.
     """
     rate, accel_g, peak_dps = _checked_inputs(
-        gyro, accel_g, rate_hz, latitude_deg, gyro_is_delta, status, method, gyro_range_dps, accel_range_g
+        gyro, accel_g, rate_hz, latitude_deg, gyro_is_delta, valid, method, gyro_range_dps, accel_range_g
     )
     dt = 1.0 / rate_hz
     n_lost = 0
@@ -716,28 +717,27 @@ def align_swaying_block(
     block, latitude_deg: float, *, rate_hz: float | None = None, **kwargs
 ) -> SwayingSolution:
     """`align_swaying` on a `northfinder.drivers.imu.ImuBlock` (or any object with sample_index,
-    gyro_rad_s, accel_g, status and rate_hz; `rate_hz` overrides the block's)."""
+    gyro_rad_s, accel_g, valid and rate_hz; `rate_hz` overrides the block's)."""
     rate_hz = rate_hz if rate_hz is not None else getattr(block, "rate_hz", None)
     return align_swaying(block.gyro_rad_s, block.accel_g, rate_hz, latitude_deg,
                          sample_index=getattr(block, "sample_index", None),
-                         status=getattr(block, "status", None), **kwargs)
+                         valid=getattr(block, "valid", None), **kwargs)
 
 
-def _check_status(status) -> None:
-    """KVH status bits 0–2 gyro x/y/z valid, 4–6 accel x/y/z valid (shared/PROTOCOLS.md §2)."""
-    if status is None:
+def _check_valid(valid) -> None:
+    """The IMU's own per-axis validity (bool [n, 6]: gyro x y z, accel x y z; ImuBlock.valid, from
+    whatever status word the model has): each triad valid in at least half the samples."""
+    if valid is None:
         return
-    status = np.asarray(status, dtype=np.int64)
-    if status.size == 0:
+    valid = np.asarray(valid, dtype=bool)
+    if valid.size == 0:
         return
-    accel_valid = (status >> 4) & 0b111
-    gyro_valid = status & 0b111
-    if np.mean(accel_valid == 0b111) < 0.5:
-        raise InputError("the IMU reports no valid accelerometers (status bits 4–6 cleared): the swaying "
+    if np.mean(valid[:, 3:6].all(axis=1)) < 0.5:
+        raise InputError("the IMU reports no valid accelerometers (flagged not valid): the swaying "
                          "alignment needs a 3-axis accelerometer — use an IMU with accelerometers")
-    if np.mean(gyro_valid == 0b111) < 0.5:
-        raise InputError("the IMU reports fewer than 3 valid gyros (status bits 0–2): the swaying alignment "
-                         "needs a 3-axis gyro")
+    if np.mean(valid[:, 0:3].all(axis=1)) < 0.5:
+        raise InputError("the IMU reports fewer than 3 valid gyros: the swaying alignment needs a 3-axis "
+                         "gyro")
 
 
 def _fill_gaps(sample_index: np.ndarray, rate: np.ndarray, accel_g: np.ndarray, max_gap: int = 10):

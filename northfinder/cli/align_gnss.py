@@ -236,13 +236,13 @@ def _simulated_window(args: argparse.Namespace, rd: RunDir, duration: float, pri
         "vel_std_m_s": 0.05,
     }
     with live.VehicleSimProcess(sim) as endpoints:
+        rate_hz = float(endpoints.get("imu_rate_hz", sim.imu_rate_hz))
+        imu = config.ImuConfig(port=str(endpoints["imu"]), rate_hz=rate_hz,  # type: ignore[arg-type]
+                               rot_format=str(endpoints.get("imu_rot_format", "DELTA")), rot_units="RAD")
         return live.acquire(
             rd,
-            imu_port=str(endpoints["imu"]),
-            gnss_port=str(endpoints["gnss"]),
-            imu_rate_hz=float(endpoints.get("imu_rate_hz", sim.imu_rate_hz)),
-            rot_format=str(endpoints.get("imu_rot_format", "DELTA")),
-            rot_units="RAD",
+            imu=imu,
+            gnss=config.GnssConfig(port=str(endpoints["gnss"])),
             duration_s=duration,
             progress=_common.DeviceTimeProgress,
             filter_settings=settings,
@@ -278,18 +278,12 @@ def _bench_window(
     }
     return live.acquire(
         rd,
-        imu_port=bench.imu.port,
-        gnss_port=g.port,
-        imu_rate_hz=float(bench.imu.rate_hz),
-        rot_format=bench.imu.rot_format,
-        rot_units=bench.imu.rot_units,
+        imu=bench.imu,
+        gnss=g,
         duration_s=duration,
         progress=_common.DeviceTimeProgress,
         filter_settings=settings,
-        imu_baudrate=bench.imu.baudrate,
-        gnss_baudrate=g.baudrate,
         configure_imu=True,
-        gnss_latency_s=g.latency_s,
         config_extra={"bench": {"imu": asdict(bench.imu), "gnss": asdict(g), "source": bench.source}},
     )
 

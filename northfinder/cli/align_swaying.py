@@ -177,8 +177,7 @@ def _simulated_window(
     with sr.ShipSimProcess(sim) as endpoints:  # type: ignore[arg-type]
         return sr.acquire(
             rd,
-            imu_port=str(endpoints["imu"]),
-            rate_hz=1000.0,
+            imu=config.ImuConfig(port=str(endpoints["imu"]), rate_hz=1000),
             duration_s=duration,
             progress=_common.DeviceTimeProgress,
             settings=settings,
@@ -195,9 +194,7 @@ def _bench_window(
     settings.update(latitude_deg=latitude, height_m=bench.site.height_m, simulate=None)
     return sr.acquire(
         rd,
-        imu_port=imu.port,
-        rate_hz=float(imu.rate_hz),
-        baudrate=imu.baudrate,
+        imu=imu,
         duration_s=duration,
         progress=_common.DeviceTimeProgress,
         settings=settings,

@@ -17,12 +17,13 @@ import time
 from pathlib import Path
 
 from northfinder import config as bench
+from northfinder import runkinds
 from northfinder.cli._common import HEADING_RANGE_DEG, add_db_flag
 from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.errors import InputError
 from northfinder.runs import base as run_base
 from northfinder.runs import campaign as cp
-from northfinder.runs.find import FindRequest, run_find
+from northfinder.runs.find import FindRequest
 from northfinder.simulate import SimSettings
 
 
@@ -179,6 +180,6 @@ def _run_find(req: FindRequest, summary_path: Path) -> None:
     t_wall = time.monotonic()
     summary_path.parent.mkdir(parents=True, exist_ok=True)
     with open(summary_path, "w", encoding="utf-8") as fh, contextlib.redirect_stdout(fh):
-        result, rundir, label = run_find(req, progress=ProgressView)
+        result, rundir, label = runkinds.KINDS["find"].measure(req, progress=ProgressView)
         print_summary(result, run_dir=rundir.path)
     print(f"wall time {time.monotonic() - t_wall:.1f} s ({label})", file=sys.stderr)

@@ -1,8 +1,9 @@
 """`northfinder check --config bench.toml` (or `--simulate`): probe each device and say what answered.
 
 One line per device, the model's own (devices.registry: the stage's version and state, the IMU's
-rate and format and that data flows, the accelerometer's heartbeat state and identity) with the
-model's name; one clear line for each device that did not answer.
+rate and format and that data flows, the accelerometer's heartbeat state and identity, the GNSS
+receiver's next fix when bench.toml has a [gnss] port) with the model's name; one clear line for
+each device that did not answer.
 Exit 0 only if every device answered.
 """
 
@@ -96,17 +97,22 @@ def _wait_for_simulated_imu(port: str) -> None:
 
 def check_bench(cfg: bench.BenchConfig) -> int:
     """Probe each device of `cfg`; one line per device; exit 0 only if each answered."""
-    ports = [p for p in (cfg.turntable.port, cfg.imu.port) if p]
-    if len(set(ports)) < len(ports):
-        raise ConfigError(
-            f"{cfg.source}: [turntable] port and [imu] port are both {ports[0]!r}; "
-            "each device needs its own port"
-        )
+    ports = [(role, p) for role, p in (("turntable", cfg.turntable.port), ("imu", cfg.imu.port),
+                                        ("gnss", cfg.gnss.port)) if p]
+    for k, (role, port) in enumerate(ports):
+        other = next((r for r, p in ports[k + 1:] if p == port), None)
+        if other is not None:
+            raise ConfigError(
+                f"{cfg.source}: [{role}] port and [{other}] port are both {port!r}; "
+                "each device needs its own port"
+            )
     results = [
         _probe("turntable", cfg.turntable.port, probe("turntable"), cfg),
         _probe("imu", cfg.imu.port, probe("imu"), cfg),
         _probe("accelerometer", cfg.accelerometer.channel, probe("accelerometer"), cfg),
     ]
+    if cfg.gnss.port:  # a [gnss] section (align --mode gnss): probed too; a turntable bench has none
+        results.append(_probe("gnss", cfg.gnss.port, probe("gnss"), cfg))
     for ok, line in results:
         print(("ok    " if ok else "FAIL  ") + line)
     if math.isnan(cfg.site.latitude_deg):

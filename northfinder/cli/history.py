@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from northfinder import runkinds
 from northfinder.cli._common import add_db_flag
 from northfinder.errors import InputError
 
@@ -28,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_db_flag(p)
     p.add_argument("--unit", metavar="LABEL", help="only this unit")
     p.add_argument(
-        "--kind", choices=("find", "align-swaying", "align-gnss", "campaign"), help="only this kind"
+        "--kind", choices=tuple(runkinds.KINDS), help="only this kind"
     )
     p.add_argument("--since", metavar="DATE", help="from this UTC date (YYYY-MM-DD) or ISO time on")
     p.add_argument("--until", metavar="DATE", help="up to this UTC date (inclusive) or ISO time")

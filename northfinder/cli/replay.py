@@ -1,28 +1,29 @@
 """`northfinder replay RUN_DIR`: recompute a run's result from its raw logs alone.
 
-A `find` run: decodes imu.raw and can.asc with the drivers' pure decoders, cuts them by the
-events log, and runs the same per-position means and estimator as the live run. An `align` run
-(its config.json says `"kind": "align-gnss"` or `"align-swaying"`): the mode's own replay
-function recomputes it from imu.raw (and gnss.nmea) and the events. Either way the result is
-compared with the run's result.json. A run stopped before 3 positions prints the positions it
-has. A campaign directory: every find it lists, and its statistics from the replayed finds. Exit 0
-for a complete run, 1 for an incomplete one, 2 for a directory that is not a run (or a usage
-error), 4 for a damaged run (a raw log cut short).
+The run's kind (config.json's `kind`; a campaign directory holds campaign.json) picks its replay
+(northfinder.runkinds). A find: imu.raw and can.asc decoded by the recorded models' decoders, cut
+by the events log, the same per-position means and estimator as the live run. An align run: the
+mode's result function on imu.raw (and gnss.nmea) and the events. A campaign: each listed find
+replayed, its statistics recomputed. The result is compared with the run's own result.json (a
+campaign's campaign.json). Exit 0 for a complete run, 1 for an incomplete one, 2 for
+a directory that is not a run (or a usage error), 4 for a damaged run (a raw log cut short).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from northfinder import config as bench
+from northfinder import runkinds
 from northfinder.cli import _align_summary, _common
 from northfinder.cli._summary import print_positions, print_summary
 from northfinder.errors import InputError
-from northfinder.rundir import RESULT, RunDir, jsonable
-from northfinder.runs import campaign, kinds
+from northfinder.rundir import RunDir, jsonable
+from northfinder.runs import campaign
 
 INCOMPLETE_EXIT = 1
 
@@ -32,7 +33,7 @@ ALIGN_SUMMARIES = {"align-gnss": "print_gnss_summary", "align-swaying": "print_s
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="recompute a run's result from its raw logs", description=__doc__)
-    p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (find, align) or a campaign directory")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory written by `northfinder find`")
     p.add_argument("--method", choices=bench.METHODS, help="heading method (default: the run's)")
     p.add_argument("--json", metavar="PATH", help="write the recomputed result JSON here")
     p.add_argument("--report", metavar="PNG", help="draw the report of the recomputed result here")
@@ -60,79 +61,82 @@ def differences(live: dict[str, Any], again: dict[str, Any], prefix: str = "") -
     return out
 
 
-def _replay_align(args: argparse.Namespace, kind: str) -> int:
-    replayed = kinds.KINDS[kind].replay(args.run_dir)
-    result, complete = replayed.result, replayed.complete
-    rd = RunDir(args.run_dir, create=False)
-    again = json.loads(json.dumps(jsonable(result)))
-    live_path = rd.file(RESULT)
-    if live_path.exists():
-        diff = differences(json.loads(live_path.read_text(encoding="utf-8")), again)
-        verdict = ("identical to the live result.json" if not diff
-                   else f"DIFFERS from the live result.json in {len(diff)} values: {', '.join(diff[:6])}")
-    else:
-        verdict = "no live result.json to compare with"
-    state = "complete" if complete else "incomplete"
-    heading = again.get("heading_deg")
-    sigma = again.get("heading_std_deg")
-    shown = f"{heading:.6f}° ± {sigma:.6f}°" if heading is not None and sigma is not None else "none"
-    print(f"{rd.path}: {state} {kind} run; replayed heading {shown}, {verdict}")
+def _verdict(rd: RunDir, result_file: str, again: dict[str, Any], method: str | None = None) -> str:
+    """How the recomputed result compares with the run's own (result.json; a campaign's campaign.json)."""
+    if method is not None:
+        return f"method {method}"
+    live_path = rd.file(result_file)
+    if not live_path.exists():
+        return f"no live {result_file} to compare with"
+    diff = differences(json.loads(live_path.read_text(encoding="utf-8")), again)
+    if not diff:
+        return f"identical to the live {result_file}"
+    return f"DIFFERS from the live {result_file} in {len(diff)} values: {', '.join(diff[:6])}"
+
+
+def _shown(again: dict[str, Any]) -> str:
+    heading, sigma = again.get("heading_deg"), again.get("heading_std_deg")
+    return f"{heading:.6f}° ± {sigma:.6f}°" if heading is not None and sigma is not None else "none"
+
+
+def _print_find(args: argparse.Namespace, rd: RunDir, out: runkinds.Replayed, again: dict[str, Any]) -> None:
+    head = f"{rd.path}: {_state(out)} run, {out.positions_measured} of {out.positions_planned} positions"
+    verdict = _verdict(rd, runkinds.KINDS["find"].result_file, again, args.method)
+    print(f"{head}; replayed heading {_shown(again)}, {verdict}")
     if not args.quiet:
-        getattr(_align_summary, ALIGN_SUMMARIES[kind])(again)
-    if args.json:
-        RunDir(Path(args.json).parent, create=True).write_json(Path(args.json).name, again)
-    return 0 if complete else INCOMPLETE_EXIT
+        print_summary(again)
+
+
+Printer = Callable[[argparse.Namespace, RunDir, runkinds.Replayed, dict[str, Any]], None]
+"""A kind's replay view: (the flags, the run directory, the replay's outcome, its result as JSON)."""
+
+
+def _print_align(kind: str) -> Printer:
+    def show(args: argparse.Namespace, rd: RunDir, out: runkinds.Replayed, again: dict[str, Any]) -> None:
+        print(f"{rd.path}: {_state(out)} {kind} run; replayed heading {_shown(again)}, "
+              f"{_verdict(rd, runkinds.KINDS[kind].result_file, again)}")
+        if not args.quiet:
+            getattr(_align_summary, ALIGN_SUMMARIES[kind])(again)
+
+    return show
+
+
+def _state(out: runkinds.Replayed) -> str:
+    return "complete" if out.complete else "incomplete"
+
+
+PRINTERS: dict[str, Printer] = {
+    "find": _print_find,
+    "align-swaying": _print_align("align-swaying"),
+    "align-gnss": _print_align("align-gnss"),
+}
+"""Each kind's replay line and summary (the views; the kinds themselves are northfinder.runkinds)."""
 
 
 def run(args: argparse.Namespace) -> int:
     if args.db:
         print(_common.history_place(args.run_dir))
-    if campaign.is_campaign_dir(args.run_dir):
+    kind = runkinds.kind_of(args.run_dir)
+    if kind.kind == "campaign":
         return _replay_campaign(args)
-    kind = kinds.kind_of(args.run_dir).kind
-    if kind != "find":
-        return _replay_align(args, kind)
-    return _replay_find(args, args.run_dir)
-
-
-def _live_verdict(rd: RunDir, again: dict[str, Any], method: str | None) -> tuple[str, bool]:
-    """How the replayed result compares with the live result.json, and whether it is identical."""
-    live_path = rd.file(RESULT)
-    if method is None and live_path.exists():
-        diff = differences(json.loads(live_path.read_text(encoding="utf-8")), again)
-        if not diff:
-            return "identical to the live result.json", True
-        return f"DIFFERS from the live result.json in {len(diff)} values: {', '.join(diff[:6])}", False
-    return ("no live result.json to compare with" if method is None else f"method {method}"), True
-
-
-def _replay_find(args: argparse.Namespace, run_dir: str | Path, quiet: bool | None = None) -> int:
-    """Replay one find and print it; the exit code (0 complete, 1 incomplete)."""
-    quiet = args.quiet if quiet is None else quiet
-    outcome = kinds.KINDS["find"].replay(run_dir, method=args.method)
-    rd = RunDir(run_dir, create=False)
-    state = "complete" if outcome.complete else "incomplete"
-    head = f"{rd.path}: {state} run, {outcome.positions_measured} of {outcome.positions_planned} positions"
-    if outcome.result is None:
-        resume = "" if outcome.complete else f"; finish it with northfinder find --resume {rd.path}"
-        print(f"{head}; a heading needs at least 3 positions, nothing to recompute{resume}")
-        if outcome.positions and not quiet:
-            print_positions(outcome.positions)
+    out = kind.replay(args.run_dir, method=args.method)
+    rd = RunDir(args.run_dir, create=False)
+    if out.result is None:
+        resume = "" if out.complete else f"; finish it with northfinder find --resume {rd.path}"
+        print(f"{rd.path}: {_state(out)} run, {out.positions_measured} of {out.positions_planned} positions; "
+              f"a heading needs at least 3 positions, nothing to recompute{resume}")
+        if out.positions and not args.quiet:
+            print_positions(out.positions)
         return INCOMPLETE_EXIT
-    again = json.loads(json.dumps(jsonable(outcome.result)))
-    verdict, _ = _live_verdict(rd, again, args.method)
-    print(
-        f"{head}; replayed heading {again['heading_deg']:.6f}° ± {again['heading_std_deg']:.6f}°, {verdict}"
-    )
-    if not quiet:
-        print_summary(again)
+    again = json.loads(json.dumps(jsonable(out.result)))
+    PRINTERS[kind.kind](args, rd, out, again)
     if args.json:
         RunDir(Path(args.json).parent, create=True).write_json(Path(args.json).name, again)
-    if args.report:
+    if args.report and kind.kind == "find":
         from northfinder.report import write_report
 
         write_report(again, args.report)
-    return 0 if outcome.complete else INCOMPLETE_EXIT
+    return 0 if out.complete else INCOMPLETE_EXIT
 
 
 def _replay_campaign(args: argparse.Namespace) -> int:
@@ -155,7 +159,7 @@ def _replay_campaign(args: argparse.Namespace) -> int:
             print(f"{rd.path}: {out.positions_measured} of {out.positions_planned} positions, no heading")
             continue
         res = json.loads(json.dumps(jsonable(out.result)))
-        verdict, _ = _live_verdict(rd, res, args.method)
+        verdict = _verdict(rd, runkinds.KINDS["find"].result_file, res, args.method)
         shown = f"{res['heading_deg']:.6f}° ± {res['heading_std_deg']:.6f}°"
         print(f"{rd.path}: replayed heading {shown}, {verdict}")
     for f in saved.get("failed", []):

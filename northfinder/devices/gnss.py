@@ -16,8 +16,11 @@ from typing import Any
 import numpy as np
 
 from northfinder.constants import radii_of_curvature_m
+from northfinder.errors import DeviceError
 
 ROLE = "gnss"
+CHECK_FIX_WAIT_S = 3.0
+"""How long `check` waits for one fix (receivers send 1–10 epochs per second)."""
 
 
 @dataclass(frozen=True)
@@ -166,6 +169,21 @@ class GnssReceiver(ABC):
 
     @abstractmethod
     def close(self) -> None: ...
+
+    # -- built once on top -------------------------------------------------------------------
+    def check_line(self) -> str:
+        """`northfinder check`'s line for this receiver: what it says it is, and its next fix (a
+        receiver that streams but has no fix yet answered: the line says so)."""
+        ident = ", ".join(f"{k} {v}" for k, v in self.identity().items())
+        try:
+            fix = self.read_fixes(1, timeout_s=CHECK_FIX_WAIT_S)[0]
+        except DeviceError:
+            what = (f"no fix within {CHECK_FIX_WAIT_S:g} s (align --mode gnss needs one: antenna, sky view)")
+        else:
+            hdop = "?" if fix.hdop is None else f"{fix.hdop:g}"
+            what = (f"fix quality {fix.fix_quality}, {fix.num_sv} satellites, HDOP {hdop}, "
+                    f"{fix.lat_deg:.6f}° {fix.lon_deg:.6f}° {fix.height_m:.1f} m")
+        return f"{self.role} on {self.port}: {ident}; {what}"
 
     def __enter__(self) -> GnssReceiver:
         return self

@@ -104,6 +104,9 @@ class ImuDecoder(ABC):
 
     counter_period: int = 0
     """Samples after which the model's counter wraps (0: it does not)."""
+    counter_name: str = "sample counter"
+    """The model's name for its counter, in its manual's words (a result's note on an unknown gap
+    names it)."""
 
 
 class InertialStream(ABC):
@@ -116,6 +119,9 @@ class InertialStream(ABC):
     """The registry name of the model (set by registry.open_device)."""
     rate_hz: float
     reconnects: int = 0
+    gyro_range_dps: float | None = None
+    """The gyros' input range [°/s] (±), as the model's data sheet gives it; None: not known (a run
+    then cannot say a sway saturates it before the estimator does)."""
 
     # -- what a model implements -------------------------------------------------------------
     @abstractmethod

@@ -13,14 +13,16 @@ import math
 import os
 import socket
 import uuid
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from northfinder import runkinds
+
 ENV_UNIT = "NORTHFINDER_UNIT"
 """Environment variable giving the unit label when a run's command line had no `--unit`."""
-CAMPAIGN_JSON = "campaign.json"
+CAMPAIGN_JSON = runkinds.CAMPAIGN_JSON
 CAMPAIGN_STATE = "campaign-state.json"
 RECORD_JSON = "history.json"
 """In a run directory: the run's id and where its history row went (docs/result-schema.md)."""
@@ -103,30 +105,51 @@ def _utc(start: dict[str, Any], fallback: Path) -> str:
 
 
 def row_from_run(run_dir: str | Path, unit: str | None = None) -> dict[str, Any] | None:
-    """The history row of a completed run directory; None if it holds no complete result."""
+    """The history row of a completed run directory; None if it holds no complete result. The row
+    is its kind's (northfinder.runkinds: find_row, align_row, campaign_row)."""
     d = Path(run_dir).resolve()
-    if (d / CAMPAIGN_JSON).exists():
-        return _campaign_row(d, unit)
+    return runkinds.kind_of(d).history_row(d, unit)
+
+
+def find_row(run_dir: Path, unit: str | None = None) -> dict[str, Any] | None:
+    """A find's row: a run row with its positions and dwell."""
+    return _run_row(run_dir, unit, "find", _find_columns)
+
+
+def _find_columns(result: dict[str, Any], config: dict[str, Any], start: dict[str, Any]) -> dict[str, Any]:
+    """A find's own columns: positions measured and the dwell (the bench's [run], else the start event)."""
+    run_cfg = (config.get("bench") or {}).get("run", {})
+    return {"positions": result.get("positions_measured"),
+            "dwell_s": run_cfg.get("dwell_s", start.get("dwell_s"))}
+
+
+def align_row(run_dir: Path, unit: str | None = None) -> dict[str, Any] | None:
+    """An alignment's row (swaying or GNSS): a run row without positions or dwell."""
+    return _run_row(run_dir, unit, None, lambda *_: {"positions": None, "dwell_s": None})
+
+
+def _run_row(
+    d: Path, unit: str | None, kind_default: str | None, columns: Callable[..., dict[str, Any]]
+) -> dict[str, Any] | None:
+    """The row of a run directory holding one result.json; `columns(result, config, start event)`
+    gives the kind's own columns (positions, dwell)."""
     result = _read(d / "result.json")
     if not result or not result.get("complete", False):
         return None
     config = _read(d / "config.json") or {}
     start = _start_event(d)
-    kind = str(result.get("kind") or config.get("kind") or "find")
     parent = d.parent
     in_campaign = (parent / CAMPAIGN_JSON).exists() or (parent / CAMPAIGN_STATE).exists()
-    run_cfg = (config.get("bench") or {}).get("run", {}) if kind == "find" else {}
     return {
         **identity(d),
         "time_utc": _utc(start, d / "result.json"),
-        "kind": kind,
+        "kind": str(result.get("kind") or config.get("kind") or kind_default or "find"),
         "unit": unit
         or unit_from_argv(config.get("argv"))
         or _campaign_unit(parent)
         or os.environ.get(ENV_UNIT, ""),
         "latitude_deg": result.get("latitude_deg"),
-        "positions": result.get("positions_measured") if kind == "find" else None,
-        "dwell_s": run_cfg.get("dwell_s", start.get("dwell_s")) if kind == "find" else None,
+        **columns(result, config, start),
         "duration_s": result.get("duration_device_s"),
         "method": result.get("method"),
         "heading_deg": result.get("heading_deg"),
@@ -145,8 +168,8 @@ def _campaign_unit(parent: Path) -> str | None:
     return (c or {}).get("unit") or None
 
 
-def _campaign_row(d: Path, unit: str | None) -> dict[str, Any] | None:
-    """A finished campaign: the main method's mean deviation, observed σ and mean tilt."""
+def campaign_row(d: Path, unit: str | None = None) -> dict[str, Any] | None:
+    """A finished campaign's row: the main method's mean deviation, observed σ and mean tilt."""
     c = _read(d / CAMPAIGN_JSON)
     if not c or not c.get("complete"):
         return None

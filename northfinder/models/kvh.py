@@ -19,6 +19,8 @@ from northfinder.models._section import value
 class KvhImu(Imu, InertialStream):
     """The KVH in the inertial-stream role."""
 
+    gyro_range_dps = 490.0  # ±490 °/s, the 1750/1760/1775 data sheets (align.swaying.KVH_GYRO_RANGE_DPS)
+
     def identity(self) -> dict[str, Any]:
         return {"model": "kvh", "axes": self.axes.describe(), "rate_hz": self.rate_hz}
 
@@ -55,6 +57,7 @@ class KvhLogDecoder(ImuDecoder):
     """imu.raw of a KVH run → samples (the live driver's decoder and conversion: bit-identical)."""
 
     counter_period = 128
+    counter_name = "7-bit sequence"
 
     def decode_log(self, raw: bytes, settings: dict[str, Any]) -> tuple[ImuBlock, Any]:
         return decode_imu_stream(raw, settings["rate_hz"], settings.get("rot_format", "DELTA"),

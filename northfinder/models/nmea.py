@@ -23,6 +23,12 @@ class NmeaGnss(Gnss, GnssReceiver):
     def identity(self) -> dict[str, Any]:
         return {"model": "nmea"}
 
+    def check_line(self) -> str:
+        """The role's line (identity, the next fix) and the NMEA stream's counters."""
+        line = super().check_line()
+        s = self.stats
+        return f"{line}; {s.sentences} sentences, {s.bad_checksum} bad checksum"
+
 
 class NmeaLogDecoder(GnssDecoder):
     def decode_log(self, raw: bytes) -> tuple[list[Any], Any]:

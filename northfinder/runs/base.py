@@ -155,27 +155,30 @@ def select_samples(block: Any, first_index: int, last_index: int) -> Any:
     )
 
 
-def before_unknown_gap(block: Any) -> tuple[Any, dict[str, Any] | None]:
+def before_unknown_gap(block: Any, model: str | None = None) -> tuple[Any, dict[str, Any] | None]:
     """The samples before the block's first gap of unknown length, and what was cut (None: none).
 
-    After such a gap (bytes lost on the line: an overrun, a silence) the 7-bit sequence tells the
-    sample count only modulo 128, so every later sample's device time may be off by 128·k/rate —
-    0.5 s at 250 Hz, enough to put an alignment's heading tens of degrees off with a small σ. The
-    runs that time-tag samples (the align modes) keep the part whose time is known and say so."""
+    After such a gap (bytes lost on the line: an overrun, a silence) a wrapping device counter tells
+    the sample count only modulo its period, so every later sample's device time may be off by a
+    whole number of periods (0.5 s for a 128-sample counter at 250 Hz), enough to put an
+    alignment's heading tens of degrees off with a small σ. The runs that time-tag samples (the
+    align modes) keep the part whose time is known and say so, naming the counter of `model` (the
+    model the run recorded) in its own words."""
     inside = [k for k in block.unknown_gaps if k > int(block.sample_index[0])] if len(block) else []
     if not inside:
         return block, None
     at = min(inside)
     rate = float(block.rate_hz)
     cut = select_samples(block, int(block.sample_index[0]), at - 1)
+    decoder = registry.decoder_for("imu", model)
     note = {
         "at_index": at,
         "at_s": float(at - block.sample_index[0]) / rate,
         "kept_s": float(cut.sample_index[-1] - cut.sample_index[0] + 1) / rate,
         "dropped_samples": int(len(block) - len(cut)),
         "unknown_gaps": len(inside),
-        "why": "bytes lost on the IMU line (an overrun or a silence): the 7-bit sequence counts the "
-               "samples after it only modulo 128, so their time is unknown",
+        "why": f"bytes lost on the IMU line (an overrun or a silence): the {decoder.counter_name} counts the "
+               f"samples after it only modulo {int(decoder.counter_period)}, so their time is unknown",
     }
     return cut, note
 

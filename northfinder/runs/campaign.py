@@ -1,7 +1,8 @@
 """A repeatability campaign: N finds in a row at each of one or more base headings (steps).
 
 Each find is a complete run directory `stepK-runNN` under the campaign directory, made by the
-find run itself (northfinder.runs.find.run_find, the one coupling to the find). campaign.json is the
+find kind's own measure and replayed by its own replay (northfinder.runkinds: the campaign
+dispatches to the find through the run-kind registry; it builds the find's request). campaign.json is the
 campaign's state: written atomically at the start and after every find, it lists the finds done,
 so `--resume` runs exactly the missing ones — none repeated, none lost. A find that was stopped or
 failed is moved aside (`stepK-runNN.failed-A`) and measured again; a find that finished but was not
@@ -19,17 +20,17 @@ from typing import Any
 from northfinder.errors import InputError, NorthfinderError, RunAborted
 from northfinder.estimators.campaign_stats import deviation_deg, method_statistics, step_statistics
 from northfinder.history import record_or_warn
+from northfinder.runkinds import CAMPAIGN_JSON, KINDS, Replayed
 from northfinder.runs.base import now_utc
-from northfinder.runs.find import FindRequest, run_find
+from northfinder.runs.find import FindRequest
 
-CAMPAIGN_JSON = "campaign.json"
 SCHEMA = "northfinder.campaign/1"
 SEED_STRIDE = 1000
 """A simulated find's seed is seed + index + SEED_STRIDE·attempt: every find (and every retry of a
 stopped one) draws its own sensor noise, and the same campaign plan draws the same noise again."""
 
 FindRunner = Callable[[FindRequest, Path], None]
-"""Runs one find (northfinder.runs.find.run_find) and writes its summary to the given path."""
+"""Runs one find (the find kind's measure) and writes its summary to the given path."""
 
 
 def run_name(step: int, repeat: int) -> str:
@@ -53,13 +54,14 @@ def write_state(cdir: Path, state: dict[str, Any]) -> None:
     os.replace(tmp, cdir / CAMPAIGN_JSON)
 
 
-def read_state(cdir: Path) -> dict[str, Any]:
+def read_state(cdir: Path, what: str = "--resume") -> dict[str, Any]:
+    """campaign.json; InputError naming `what` (the flag or command reading it) if it is not one."""
     try:
         state = json.loads((cdir / CAMPAIGN_JSON).read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise InputError(f"--resume {cdir}: no {CAMPAIGN_JSON} there; not a campaign directory") from None
+        raise InputError(f"{what} {cdir}: no {CAMPAIGN_JSON} there; not a campaign directory") from None
     if state.get("schema") != SCHEMA:
-        raise InputError(f"--resume {cdir}: {CAMPAIGN_JSON} is not a {SCHEMA} file")
+        raise InputError(f"{what} {cdir}: {CAMPAIGN_JSON} is not a {SCHEMA} file")
     return state
 
 
@@ -104,7 +106,7 @@ def find_request(state: dict[str, Any], index: int, step: int, attempt: int, out
 def run_quietly(req: FindRequest, summary_path: Path) -> None:
     """One find with no view (the CLI passes its own runner that shows the progress and writes the
     summary to `summary_path`). Raises what the find raises."""
-    run_find(req)
+    KINDS["find"].measure(req)
 
 
 def run_entry(run_dir: Path, cdir: Path, index: int, step: int, repeat: int, reference_deg: float):
@@ -114,7 +116,16 @@ def run_entry(run_dir: Path, cdir: Path, index: int, step: int, repeat: int, ref
         result = json.loads((run_dir / "result.json").read_text(encoding="utf-8"))
     except (FileNotFoundError, json.JSONDecodeError):
         return None
-    if not result.get("complete"):
+    return entry_from_result(result, run_dir, cdir, index, step, repeat, reference_deg)
+
+
+def entry_from_result(
+    result: dict[str, Any] | None, run_dir: Path, cdir: Path, index: int, step: int, repeat: int,
+    reference_deg: float,
+) -> dict[str, Any] | None:
+    """campaign.json's record of a find from its result (live: result.json; replay: the find's
+    replay); None for no complete result."""
+    if not result or not result.get("complete"):
         return None
     methods = {m: v["heading_deg"] for m, v in result["methods"].items()}
     return {
@@ -242,13 +253,11 @@ def is_campaign_dir(path: str | Path) -> bool:
 def replay_campaign(
     cdir: str | Path, method: str | None = None,
 ) -> tuple[dict[str, Any], list[tuple[dict[str, Any], Any]], dict[str, Any]]:
-    """Replay every find a campaign lists (runs.kinds, the find's own replay) and recompute the
+    """Replay every find a campaign lists (runkinds: the find's own replay) and recompute the
     campaign's statistics from the replayed results: (campaign.json as saved, [(its entry, the
     find's Replayed)], the state with the replayed numbers and statistics). The finds set aside
     (stopped, failed) are not in the statistics; replay them one by one. `method`: the finds'
     heading method (default: each find's own), also the one whose reported σ the statistics use."""
-    from northfinder.runs.kinds import KINDS
-
     cdir = Path(cdir)
     saved = json.loads((cdir / CAMPAIGN_JSON).read_text(encoding="utf-8"))
     if saved.get("schema") != SCHEMA:
@@ -272,3 +281,10 @@ def replay_campaign(
         again["method"] = method
     update_statistics(again)
     return saved, replayed, json.loads(json.dumps(again))
+
+
+def replayed(cdir: str | Path, method: str | None = None) -> Replayed:
+    """:func:`replay_campaign` as the campaign's replay in the run-kind registry: the campaign state
+    with the replayed finds' records and statistics, and whether the campaign was complete."""
+    saved, _, again = replay_campaign(cdir, method)
+    return Replayed(again, bool(saved.get("complete")))

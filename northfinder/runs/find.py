@@ -35,6 +35,7 @@ from northfinder.estimators.means import PositionMeans, position_means
 from northfinder.estimators.plan import MOTION_KINDS
 from northfinder.history import record_or_warn
 from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session_file
+from northfinder.runkinds import Replayed
 from northfinder.runs.base import ProgressView, RunContext, default_out, guard, now_utc
 from northfinder.runs.base import discard_unstarted as base_discard_unstarted
 from northfinder.sequencer import Interrupted, RunFailed, Sequencer, SequencerLimits
@@ -771,3 +772,10 @@ def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
             prediction=start.get("plan_prediction"),
         )
     return ReplayOutcome(result, complete, len(positions), planned, positions)
+
+
+def replayed(path: str | Path, method: str | None = None) -> Replayed:
+    """:func:`replay` as the find's replay in the run-kind registry (northfinder.runkinds)."""
+    out = replay(path, method)
+    return Replayed(out.result, out.complete, out.positions_measured, out.positions_planned,
+                    [asdict(p) for p in out.positions])

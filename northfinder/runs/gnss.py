@@ -1,15 +1,15 @@
 """`northfinder align --mode gnss`: acquisition, time alignment, result assembly and replay.
 
-What: read a KVH format-A IMU and an NMEA GNSS receiver for a window of device time, keep their
-raw bytes in the run directory as they arrive, then align with the paper's δsin/δcos filter
+What: read an IMU and a GNSS receiver (the inertial-stream and GNSS roles) for a window of device
+time, keep their raw bytes in the run directory as they arrive, then align with the paper's δsin/δcos filter
 (northfinder.align.gnss_ins.align_gnss) and, on the same data, the small-angle filter
 (northfinder.align.small_angle). The filters run once the window is complete (not live): the
 progress bar shows device time, fixes and the stream counters.
 
 Why here: the CLI (northfinder/cli/align_gnss.py) and `northfinder replay` share one function,
-:func:`compute_gnss_result`, fed from the drivers' arrays live and from the pure decoders
-(`decode_imu_stream`, `decode_nmea_log`) in replay — the same bytes give the same arrays, so the
-replayed result is bit-identical.
+:func:`compute_gnss_result`, fed from the drivers' arrays live and from the pure decoders of the
+models the run recorded (registry.decoder_for) in replay — the same bytes give the same arrays, so
+the replayed result is bit-identical.
 
 Time alignment (IMU sample index ↔ GNSS time), docs/result-schema-align.md "## gnss":
 - `data` (hardware and simulator, docs/gnss-alignment.md §12): the host estimate below refined from
@@ -46,6 +46,7 @@ from northfinder.devices.gnss import GnssFix, LocalEnu, fixes_to_arrays
 from northfinder.errors import InputError
 from northfinder.report import write_gnss_report as draw_write_gnss_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
+from northfinder.runkinds import Replayed
 from northfinder.runs import base
 from northfinder.runs.base import TruthLog, read_truth_log
 
@@ -338,15 +339,8 @@ def compute_gnss_result(
     """
     flt = start["filter"]
     rate = float(start["imu"]["rate_hz"])
-    if len(imu_block) == 0:
-        raise InputError("no IMU samples were read; nothing to align")
-    if len(fixes) < 2:
-        raise InputError(
-            f"only {len(fixes)} GNSS fixes were read; check the receiver has a fix (antenna, sky view)"
-        )
+    imu, gnss = _filter_inputs(imu_block, fixes, rate, t0_index0_s, float(end["utc_ref_s"]), flt)
     idx = imu_block.sample_index
-    imu = ImuSeries(rate, imu_block.gyro_rad_s, imu_block.accel_g, idx, t0_index0_s + float(idx[0]) / rate)
-    gnss = gnss_series(fixes, float(end["utc_ref_s"]), flt["pos_std_m"], flt["vel_std_m_s"])
     t_start_imu = imu.t0_s
     t_end_imu = t0_index0_s + (float(idx[-1]) + 1.0) / rate
     check_still_start(fixes, gnss.t_s, t_start_imu, GnssAlignConfig.level_s)
@@ -379,19 +373,45 @@ def compute_gnss_result(
         "lever_arm_prior_m": list(flt["lever_arm_prior_m"]),
         "lever_arm_prior_std_m": float(flt["lever_arm_std_m"]),
         "imu_noise": dict(main.extra),
-        "position": dict(
-            zip(
-                ("lat_deg", "lon_deg", "height_m"),
-                (float(v) for v in LocalEnu(*gnss.origin).from_enu(main.pos_enu_m)),
-                strict=True,
-            )
-        ),
+        "position": _geodetic(gnss.origin, main.pos_enu_m),
         "time_alignment": alignment,
         "imu": {**end["imu"], "rate_hz": rate, "window_s": [t_start_imu, t_end_imu]},
         "gnss": {**end["gnss"], "updates": len(h.t_s), "origin": list(gnss.origin)},
         "methods": {main.method: _method_dict(main, None), "small_angle": _method_dict(small, None)},
     }
-    hist: dict[str, Any] = {
+    hist = _report_history(main, small, t_start_imu)
+    if truth is not None:
+        _add_truth(result, hist, truth, main, small, gnss.origin, t_start_imu, truth_start)
+    return result, hist
+
+
+def _filter_inputs(
+    imu_block: Any, fixes: list[GnssFix], rate: float, t0_index0_s: float, utc_ref_s: float,
+    flt: dict[str, Any],
+) -> tuple[ImuSeries, GnssSeries]:
+    """The window as both filters take it: IMU samples on GNSS time (index 0 starts at
+    `t0_index0_s`) and the fixes with their σ; InputError when either is too short to align."""
+    if len(imu_block) == 0:
+        raise InputError("no IMU samples were read; nothing to align")
+    if len(fixes) < 2:
+        raise InputError(
+            f"only {len(fixes)} GNSS fixes were read; check the receiver has a fix (antenna, sky view)"
+        )
+    idx = imu_block.sample_index
+    imu = ImuSeries(rate, imu_block.gyro_rad_s, imu_block.accel_g, idx, t0_index0_s + float(idx[0]) / rate)
+    return imu, gnss_series(fixes, utc_ref_s, flt["pos_std_m"], flt["vel_std_m_s"])
+
+
+def _geodetic(origin: Any, pos_enu_m: np.ndarray) -> dict[str, float]:
+    """The filter's final ENU position as latitude, longitude, ellipsoidal height."""
+    values = (float(v) for v in LocalEnu(*origin).from_enu(pos_enu_m))
+    return dict(zip(("lat_deg", "lon_deg", "height_m"), values, strict=True))
+
+
+def _report_history(main: GnssAlignResult, small: GnssAlignResult, t_start_imu: float) -> dict[str, Any]:
+    """Both filters' heading histories from the window's start, for report.png (not in the result)."""
+    h = main.history
+    return {
         "t_s": h.t_s - t_start_imu,
         "heading_deg": h.heading_deg,
         "heading_std_deg": h.heading_std_deg,
@@ -399,9 +419,6 @@ def compute_gnss_result(
         "small_t_s": small.history.t_s - t_start_imu,
         "small_heading_deg": small.history.heading_deg,
     }
-    if truth is not None:
-        _add_truth(result, hist, truth, main, small, gnss.origin, t_start_imu, truth_start)
-    return result, hist
 
 
 # ---------------------------------------------------------------------------------------------
@@ -520,7 +537,7 @@ def result_from_run(
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The result of a run from its window's data (live: the drivers' arrays; replay: decoded logs)."""
     truth = load_truth(rd, start)
-    imu_block, cut = base.before_unknown_gap(imu_block)
+    imu_block, cut = base.before_unknown_gap(imu_block, start["imu"].get("model"))
     last = fixes[-1].time_s - float(end["utc_ref_s"]) if fixes else None
     t0, info = time_alignment(rd, start, end, truth, last, imu_block, fixes)
     result, hist = compute_gnss_result(imu_block, fixes, start, end, truth, t0, info, complete=complete)
@@ -547,6 +564,12 @@ def replay_gnss_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
     return json.loads(json.dumps(jsonable(result))), complete
 
 
+def replayed(run_dir: str | Path, method: str | None = None) -> Replayed:
+    """:func:`replay_gnss_run` as this kind's replay in the run-kind registry (no method to choose)."""
+    result, complete = replay_gnss_run(run_dir)
+    return Replayed(result, complete)
+
+
 # ---------------------------------------------------------------------------------------------
 # The report
 # ---------------------------------------------------------------------------------------------
@@ -569,6 +592,7 @@ __all__ = [
     "KIND",
     "compute_gnss_result",
     "replay_gnss_run",
+    "replayed",
     "result_from_run",
     "time_alignment",
 ]

@@ -24,6 +24,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, ClassVar
 
+from northfinder.config import GnssConfig, ImuConfig
 from northfinder.devices import registry
 from northfinder.errors import DeviceError
 from northfinder.rundir import CONFIG, RunDir
@@ -111,14 +112,30 @@ class Window:
     stop: StopFlag
 
 
-def _open_gnss(rd: RunDir, port: str, baudrate: int, model: str) -> contextlib.AbstractContextManager[Any]:
-    """The NMEA receiver with its raw log (gnss.nmea) and host receive stamps (gnss.rx)."""
+def _open_imu(rd: RunDir, imu: ImuConfig) -> contextlib.AbstractContextManager[Any]:
+    """The IMU of `[imu]` with its raw log (imu.raw) and host receive stamps (imu.rx)."""
+    return base.guard(
+        "imu",
+        imu.port,
+        lambda: registry.open_device(
+            "imu", imu, None,
+            rate_hz=float(imu.rate_hz),
+            rot_format=imu.rot_format,
+            rot_units=imu.rot_units,
+            timeout_s=5.0,
+            transport=_stamped("imu", imu.port, imu.baudrate, rd.imu_raw_path, rd.file(gr.IMU_RX)),
+        ),
+    )
+
+
+def _open_gnss(rd: RunDir, gnss: GnssConfig) -> contextlib.AbstractContextManager[Any]:
+    """The receiver of `[gnss]` with its raw log (gnss.nmea) and host receive stamps (gnss.rx)."""
     return base.guard(
         "gnss",
-        port,
+        gnss.port,
         lambda: registry.open_device(
-            "gnss", {"model": model, "port": port, "baudrate": baudrate}, None,
-            transport=_stamped("gnss", port, baudrate, rd.file(gr.GNSS_NMEA), rd.file(gr.GNSS_RX)),
+            "gnss", gnss, None,
+            transport=_stamped("gnss", gnss.port, gnss.baudrate, rd.file(gr.GNSS_NMEA), rd.file(gr.GNSS_RX)),
         ),
     )
 
@@ -185,72 +202,52 @@ def _end_window(
 def acquire(
     rd: RunDir,
     *,
-    imu_port: str,
-    gnss_port: str,
-    imu_rate_hz: float,
-    rot_format: str,
-    rot_units: str,
+    imu: ImuConfig,
+    gnss: GnssConfig,
     duration_s: float,
     filter_settings: dict[str, Any],
-    imu_baudrate: int = 921600,
-    gnss_baudrate: int = 115200,
-    imu_model: str = "",
-    gnss_model: str = "",
     configure_imu: bool = False,
     simulate: dict[str, Any] | None = None,
     gnss_start_utc: str | None = None,
     time_scale: float = 1.0,
-    gnss_latency_s: float = 0.0,
     progress: base.WindowProgress | None = None,
     config_extra: dict[str, Any] | None = None,
 ) -> Window:
-    """Read both devices for `duration_s` device seconds; the raw logs, stamps and events are saved
-    in the run directory. A signal ends the reading early (`Window.stop` says which)."""
+    """Read the IMU of `[imu]` and the receiver of `[gnss]` (their models, ports, rates …) for
+    `duration_s` device seconds; the raw logs, stamps and events are saved in the run directory. A
+    signal ends the reading early (`Window.stop` says which)."""
     rd.write_json(CONFIG, {"kind": gr.KIND, "simulate": simulate, "argv": sys.argv, **(config_extra or {})})
     stop = StopFlag()
     blocks: list[Any] = []
     fixes: list[Any] = []
     with stop.installed(), contextlib.ExitStack() as stack:
-        imu = stack.enter_context(
-            base.guard(
-                "imu",
-                imu_port,
-                lambda: registry.open_device(
-                    "imu", {"model": imu_model, "port": imu_port}, None,
-                    rate_hz=imu_rate_hz,
-                    rot_format=rot_format,
-                    rot_units=rot_units,
-                    timeout_s=5.0,
-                    transport=_stamped("imu", imu_port, imu_baudrate, rd.imu_raw_path, rd.file(gr.IMU_RX)),
-                ),
-            )
-        )
+        device = stack.enter_context(_open_imu(rd, imu))
         if configure_imu:
-            imu.configure_for_run(None)  # read the rate and gyro format back: the decoder must know them
-        gnss = stack.enter_context(_open_gnss(rd, gnss_port, gnss_baudrate, gnss_model))
+            device.configure_for_run(None)  # read the rate and gyro format back: the decoder must know them
+        receiver = stack.enter_context(_open_gnss(rd, gnss))
         start = base.start_event(
             gr.KIND,
             duration_s,
-            imu_port,
-            imu,
-            gnss={"port": gnss_port, "model": gnss.model_name},
+            imu.port,
+            device,
+            gnss={"port": gnss.port, "model": receiver.model_name},
             filter=filter_settings,
             simulate=simulate,
             time_scale=time_scale,
             gnss_start_utc=gnss_start_utc,
-            gnss_latency_s=gnss_latency_s,
+            gnss_latency_s=gnss.latency_s,
         )
         rd.log_event(start)
-        rate = imu.rate_hz
+        rate = device.rate_hz
         with base.window_view(progress, duration_s) as view:
-            _read_both(imu, gnss, duration_s, stop, blocks, fixes, view)
+            _read_both(device, receiver, duration_s, stop, blocks, fixes, view)
             if not stop and gnss_start_utc is not None and blocks:
                 last = int(blocks[-1].sample_index[-1])
-                _fixes_to_window_end(gnss, last, rate, gnss_start_utc, time_scale, fixes)
-            pending = gnss.pending
+                _fixes_to_window_end(receiver, last, rate, gnss_start_utc, time_scale, fixes)
+            pending = receiver.pending
             if pending:
-                fixes.extend(gnss.read_fixes(pending, timeout_s=1.0))
-            imu_stats, gnss_stats = imu.stats, gnss.stats
+                fixes.extend(receiver.read_fixes(pending, timeout_s=1.0))
+            imu_stats, gnss_stats = device.stats, receiver.stats
     # ports closed: the raw logs and stamps are complete on disk
     return _end_window(rd, stop, blocks, fixes, rate, start, gnss_start_utc, imu_stats, gnss_stats)
 

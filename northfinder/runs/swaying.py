@@ -1,19 +1,19 @@
 """`northfinder align --mode swaying`: acquisition, result assembly, report and replay.
 
-What: read a KVH format-A IMU (gyros + accelerometers) on a swaying base for a window of device
-time, keep its bytes in the run directory as they arrive (imu.raw), then align with the
+What: read an IMU (the inertial-stream role: gyros + accelerometers) on a swaying base for a window
+of device time, keep its bytes in the run directory as they arrive (imu.raw), then align with the
 inertial-frame cone fit (northfinder.align.swaying) and, on the same samples, the static analytic
 coarse alignment (northfinder.align.coarse) for contrast.
 
 Why here: the CLI (northfinder/cli/align_swaying.py) and `northfinder replay` share one function,
-:func:`compute_swaying_result`, fed from the driver's arrays live and from the pure decoder
-(`decode_imu_stream`) in replay — the same bytes give the same arrays, so the replayed result is
-bit-identical.
+:func:`compute_swaying_result`, fed from the driver's arrays live and from the pure decoder of the
+model the run recorded (registry.decoder_for) in replay — the same bytes give the same arrays, so the
+replayed result is bit-identical.
 
 Truth of a simulated run (docs/simulator.md, "Time alignment of the IMU"): firmware-sim's truth log
-names the absolute sample k0 (sequence number sequence0) of the first frame it handed to this
-client, ending at device time t0_device_s. The first frame decoded (index 0, sequence s) is sample
-k_first = k0 + ((s − sequence0) mod 128), so the sample with index u ends at
+names the absolute sample k0 (the model's counter value sequence0) of the first frame it handed to
+this client, ending at device time t0_device_s. The first frame decoded (index 0, counter s) is sample
+k_first = k0 + ((s − sequence0) mod the counter's period), so the sample with index u ends at
 t0_device_s + (k_first − k0 + u)/rate. The truth heading is the logged heading at the end of the
 last sample used — the instant the estimator's attitude refers to.
 """
@@ -33,18 +33,19 @@ import numpy as np
 
 from northfinder.align.coarse import coarse_align
 from northfinder.align.swaying import (
-    KVH_GYRO_RANGE_DPS,
     METHODS,
     align_swaying_block,
     grade_bias_prior,
     minimum_duration_s,
 )
-from northfinder.config import SwayingConfig
+from northfinder.config import ImuConfig, SwayingConfig
 from northfinder.constants import DEG, STANDARD_GRAVITY_M_S2, wrap_deg_180
 from northfinder.devices import registry
+from northfinder.devices.imu import ImuAxes
 from northfinder.errors import DeviceError, InputError
 from northfinder.report import write_swaying_report as draw_write_swaying_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
+from northfinder.runkinds import Replayed
 from northfinder.runs import base
 from northfinder.simulate import SimScenario, SimulatorProcess
 from northfinder.stopflag import StopFlag
@@ -172,21 +173,24 @@ class Window:
     stop: StopFlag
 
 
-def check_stream(block: Any, port: str) -> None:
-    """Refuse early what the alignment cannot use: no valid accelerometers (KVH status bits 4–6,
-    docs/PROTOCOLS.md §2, or all-zero fields) and gyros at the end of their range."""
-    status = np.asarray(block.status, dtype=np.int64)
-    if len(status) and (np.mean(((status >> 4) & 0b111) == 0b111) < 0.5 or not np.any(block.accel_g)):
+def check_stream(block: Any, port: str, gyro_range_dps: float | None) -> None:
+    """Refuse early what the alignment cannot use: accelerometers the IMU flags not valid (the
+    block's per-axis validity, ImuBlock.valid, whatever the model's status words), or all zero, and
+    gyros at the end of their range (the model's `gyro_range_dps`; None: not known, not checked)."""
+    axes = ImuAxes.from_valid(block.valid) if len(block) else None
+    accel = block.accel_g[np.isfinite(block.accel_g)]
+    if axes is not None and (axes.accel != "xyz" or not np.any(accel)):
         raise DeviceError(
             "imu",
             port,
-            "reports no valid accelerometers (status bits 4–6 clear): the swaying "
-            "alignment needs a 3-axis gyro + accelerometer IMU (KVH 1750/1760/1775)",
+            f"reports no valid accelerometers ({axes.describe()} in its samples' validity): the swaying "
+            "alignment needs an IMU with three gyros and three accelerometers",
         )
-    peak = float(np.max(np.abs(block.gyro_rad_s))) / DEG if len(status) else 0.0
-    if peak >= GYRO_SATURATION_FRACTION * KVH_GYRO_RANGE_DPS:
+    gyro = np.abs(block.gyro_rad_s[np.isfinite(block.gyro_rad_s)])
+    peak = float(np.max(gyro)) / DEG if len(gyro) else 0.0
+    if gyro_range_dps is not None and peak >= GYRO_SATURATION_FRACTION * gyro_range_dps:
         raise InputError(
-            f"gyro reached {peak:.1f} °/s, the ±{KVH_GYRO_RANGE_DPS:g} °/s range of the IMU on "
+            f"gyro reached {peak:.1f} °/s, the ±{gyro_range_dps:g} °/s range of the IMU on "
             f"{port}: the sway saturates the gyro — align in calmer sea or with a wider-range IMU"
         )
 
@@ -194,46 +198,43 @@ def check_stream(block: Any, port: str) -> None:
 def acquire(
     rd: RunDir,
     *,
-    imu_port: str,
-    rate_hz: float,
+    imu: ImuConfig,
     duration_s: float,
     settings: dict[str, Any],
-    baudrate: int = 921600,
-    imu_model: str = "",
     configure_imu: bool = False,
     progress: base.WindowProgress | None = None,
     config_extra: dict[str, Any] | None = None,
 ) -> Window:
-    """Read `duration_s` device seconds (samples + lost samples over the rate) from the IMU; raw bytes
-    go to imu.raw as they arrive, the window's index range to events.jsonl. A signal ends the
-    reading early (`Window.stop` says which). `settings`: what the estimator needs (latitude,
-    method, sway period, simulate) — stored in the start event so replay finds it."""
+    """Read `duration_s` device seconds (samples + lost samples over the rate) from the IMU of the
+    `[imu]` section `imu` (its model, port, rate …); raw bytes go to imu.raw as they arrive, the
+    window's index range to events.jsonl. A signal ends the reading early (`Window.stop` says
+    which). `settings`: what the estimator needs (latitude, method, sway period, simulate) — stored
+    in the start event so replay finds it."""
     rd.write_json(CONFIG, {"kind": KIND, "argv": sys.argv, **settings, **(config_extra or {})})
     stop = StopFlag()
     blocks: list[Any] = []
+    port = imu.port
     with stop.installed():
         with base.guard(
-            "imu",
-            imu_port,
-            lambda: registry.open_device("imu", {"model": imu_model, "port": imu_port, "baudrate": baudrate},
-                                         rd.imu_raw_path, rate_hz=rate_hz),
-        ) as imu:
+            "imu", port, lambda: registry.open_device("imu", imu, rd.imu_raw_path, rate_hz=float(imu.rate_hz))
+        ) as device:
             if configure_imu:
-                imu.configure_for_run(None)  # read rate and gyro format back: the decoder must know them
-            start = base.start_event(KIND, duration_s, imu_port, imu, **settings)
+                device.configure_for_run(None)  # read rate and gyro format back: the decoder must know them
+            start = base.start_event(KIND, duration_s, port, device, **settings)
             rd.log_event(start)
             with base.window_view(progress, duration_s) as view:
+                gyro_range = device.gyro_range_dps
                 for done_s in base.read_imu_window(
-                    imu, duration_s, stop, blocks, check=lambda b: check_stream(b, imu_port)
+                    device, duration_s, stop, blocks, check=lambda b: check_stream(b, port, gyro_range)
                 ):
-                    st = imu.stats
+                    st = device.stats
                     view.show(
                         done_s,
                         f"{done_s:6.1f}/{duration_s:g} s  lost {st.lost_samples}  bad CRC {st.bad_crc}  "
                         f"resyncs {st.resyncs}",
                     )
-            rate = imu.rate_hz
-            stats = imu.stats.as_dict()
+            rate = device.rate_hz
+            stats = device.stats.as_dict()
     # port closed: imu.raw is complete on disk
     complete = not stop
     if not blocks:
@@ -327,8 +328,6 @@ def compute_swaying_result(
         height_m=float(start.get("height_m", 0.0)),
         **prior,
     )
-    coarse = coarse_align(block.gyro_rad_s, block.accel_g, rate, lat)
-    still = bool(coarse.diagnostics["base_still"])
     main = {
         "heading_deg": sol.heading_deg,
         "heading_std_deg": sol.heading_std_deg,
@@ -349,17 +348,7 @@ def compute_swaying_result(
         "minimum_duration_s": minimum_duration_s(float(start["max_sway_period_s"])),
         "methods": {
             sol.method: dict(main),
-            "coarse": {
-                "heading_deg": coarse.heading_deg,
-                "heading_std_deg": coarse.heading_std_deg if still else None,
-                "pitch_deg": coarse.pitch_deg,
-                "roll_deg": coarse.roll_deg,
-                "note": "static analytic coarse alignment (window means); σ: the still-base noise limit"
-                if still
-                else "static analytic coarse alignment (window means); no σ: the base moves, the "
-                "window-mean rate carries the sway, not the Earth rate",
-                **coarse.diagnostics,
-            },
+            "coarse": _coarse_method(block, rate, lat),
         },
         "sigma_covers": sigma_covers(prior),
         "diagnostics": sol.diagnostics,
@@ -372,6 +361,24 @@ def compute_swaying_result(
         for m in result["methods"].values():
             m["error_deg"] = float(wrap_deg_180(m["heading_deg"] - truth["heading_deg"]))
     return json.loads(json.dumps(jsonable(result), allow_nan=False)), sol
+
+
+def _coarse_method(block: Any, rate_hz: float, latitude_deg: float) -> dict[str, Any]:
+    """The contrast method on the same samples: the static analytic coarse alignment (window means),
+    with a σ only when the base was still."""
+    coarse = coarse_align(block.gyro_rad_s, block.accel_g, rate_hz, latitude_deg)
+    still = bool(coarse.diagnostics["base_still"])
+    return {
+        "heading_deg": coarse.heading_deg,
+        "heading_std_deg": coarse.heading_std_deg if still else None,
+        "pitch_deg": coarse.pitch_deg,
+        "roll_deg": coarse.roll_deg,
+        "note": "static analytic coarse alignment (window means); σ: the still-base noise limit"
+        if still
+        else "static analytic coarse alignment (window means); no σ: the base moves, the "
+        "window-mean rate carries the sway, not the Earth rate",
+        **coarse.diagnostics,
+    }
 
 
 def sigma_covers(prior: dict[str, float]) -> dict[str, Any]:
@@ -395,7 +402,7 @@ def result_from_run(
     rd: RunDir, block: Any, start: dict[str, Any], end: dict[str, Any], complete: bool
 ) -> tuple[dict[str, Any], Any]:
     """The result of a run from its window's samples (live: the driver's arrays; replay: decoded)."""
-    block, cut = base.before_unknown_gap(block)
+    block, cut = base.before_unknown_gap(block, start["imu"].get("model"))
     truth = None
     if start.get("simulate"):
         last = int(end["imu"]["last_index"]) if cut is None else int(block.sample_index[-1])
@@ -421,6 +428,12 @@ def replay_swaying_run(run_dir: str | Path) -> tuple[dict[str, Any], bool]:
     complete = bool(end.get("complete"))
     result, _ = result_from_run(rd, block, start, end, complete)
     return result, complete
+
+
+def replayed(run_dir: str | Path, method: str | None = None) -> Replayed:
+    """:func:`replay_swaying_run` as this kind's replay in the run-kind registry (no method to choose)."""
+    result, complete = replay_swaying_run(run_dir)
+    return Replayed(result, complete)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -475,6 +488,7 @@ __all__ = [
     "finish",
     "parse_sway",
     "replay_swaying_run",
+    "replayed",
     "result_from_run",
     "write_swaying_report",
 ]
