@@ -18,6 +18,7 @@ from typing import Any
 from northfinder.align.grades import IMU_GRADES
 from northfinder.align.limits import latitude_problem
 from northfinder.align.swaying import METHODS as SWAYING_METHODS
+from northfinder.devices import registry
 from northfinder.errors import ConfigError
 from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG
 from northfinder.estimators.plan import KINDS as PLAN_KINDS
@@ -42,6 +43,8 @@ CAN_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_
 class TurntableConfig:
     """`[turntable]`: the SMC100 rotation stage."""
 
+    model: str = "smc100"
+    """The rotation stage's model (northfinder.devices.registry; a package may add its own)."""
     port: str = ""
     address: int = 1
     baudrate: int = 57600
@@ -59,6 +62,8 @@ class TurntableConfig:
 class ImuConfig:
     """`[imu]`: the KVH format-A gyro/IMU."""
 
+    model: str = "kvh"
+    """The IMU's model (northfinder.devices.registry; a package may add its own)."""
     port: str = ""
     rate_hz: int = 1000
     baudrate: int = 921600
@@ -79,6 +84,8 @@ class ImuConfig:
 class AccelerometerConfig:
     """`[accelerometer]`: the CANopen accelerometer node (python-can interface/channel)."""
 
+    model: str = "nf-accel"
+    """The accelerometer (tilt sensor)'s model (northfinder.devices.registry; a package may add its own)."""
     interface: str = "slcan"
     channel: str = ""
     bitrate: int = 500_000
@@ -102,6 +109,8 @@ class AccelerometerConfig:
 class GnssConfig:
     """`[gnss]`: the NMEA receiver of `align --mode gnss` and what the filter assumes about it."""
 
+    model: str = "nmea"
+    """The GNSS receiver's model (northfinder.devices.registry; a package may add its own)."""
     port: str = ""
     baudrate: int = 115200
     lever_arm_m: tuple[float, float, float] | None = None
@@ -311,6 +320,11 @@ def _validate(cfg: BenchConfig) -> None:
 def _validate_devices(cfg: BenchConfig, need: Callable[[bool, str, Any, str], None]) -> None:
     """The ranges of [turntable], [imu] and [accelerometer]."""
     t, i, a = cfg.turntable, cfg.imu, cfg.accelerometer
+    for role in registry.ROLES:
+        name = getattr(cfg, role).model
+        models = registry.available(role)
+        need(name in models, f"[{role}] model", name,
+             f"use one of {', '.join(models)} (or install its package)")
     need(1 <= t.address <= 31, "[turntable] address", t.address, "use 1…31")
     need(t.baudrate > 0, "[turntable] baudrate", t.baudrate, "use a positive baud rate")
     need(math.isfinite(t.speed_deg_s) and t.speed_deg_s >= 0, "[turntable] speed_deg_s", t.speed_deg_s,

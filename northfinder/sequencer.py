@@ -13,7 +13,6 @@ in the middle of one), stops the stage with `ST`, logs the stage's state, and ra
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import signal
 import time
@@ -25,23 +24,16 @@ import numpy as np
 
 from northfinder.config import RunConfig, position_plan_deg
 from northfinder.constants import DPH
-from northfinder.drivers.turntable import StageError
+from northfinder.devices.imu import ImuBlock, InertialStream
+from northfinder.devices.stage import RotaryStage, StageFault
+from northfinder.devices.tilt import AccelBlock, TiltSensor
 from northfinder.errors import ConfigError, DeviceError, NorthfinderError
+from northfinder.estimators.dwell import DwellLimits, dwell_problems
 from northfinder.estimators.means import PositionMeans, position_means
 from northfinder.estimators.plan import MOTION_KINDS, sweep_targets_deg
 from northfinder.stopflag import StopFlag
 
 log = logging.getLogger(__name__)
-
-
-class _Turntable(Protocol):  # the parts of northfinder.drivers.turntable.Turntable used here
-    def status(self) -> Any: ...
-    def ensure_referenced(self, allow_home: bool = True) -> Any: ...
-    def move_absolute_deg(self, angle_deg: float, wait: bool = True, timeout_s: float = 120.0) -> Any: ...
-    def wait_ready(self, timeout_s: float = 120.0, poll_s: float = 0.05) -> Any: ...
-    def position_deg(self) -> float: ...
-    def stop(self) -> Any: ...
-    def soft_limits_deg(self) -> tuple[float, float]: ...
 
 
 class _EventLog(Protocol):  # northfinder.rundir.RunDir: the sequencer only appends events to it
@@ -50,9 +42,6 @@ class _EventLog(Protocol):  # northfinder.rundir.RunDir: the sequencer only appe
 
 MIN_VISIBLE_MOVE_DEG = 0.5
 """Moves at least this long are expected to show in the gyro z before settling is judged."""
-STOPPED_REPORT_WAIT_S = 2.5
-"""Host seconds to wait for a heartbeat reporting the accelerometer stopped (it normally arrived
-during the move: 1 s producer time, PROTOCOLS.md §3.1 object 1017) — only a bound of the wait."""
 SLOWEST_STAGE_DEG_S = 1.0
 """The stage speed assumed when [turntable] speed_deg_s is not given: bounds of a move are taken
 as for the slowest table supported, so a several-minute move at 1 deg/s still works."""
@@ -77,47 +66,6 @@ class RunFailed(NorthfinderError):
     def __init__(self, message: str, positions: list[PositionMeans]):
         self.positions = positions
         super().__init__(message)
-
-
-DISTURBANCE_Z = 7.0
-"""A window mean this many of its own white-noise σ from the dwell's median is a disturbance:
-P(|z| > 7) ≈ 3e-12 per window, so a clean dwell of thousands of windows never trips it."""
-
-
-def disturbance_z(samples: np.ndarray, window: int, floor: float = 0.0) -> tuple[float, int]:
-    """Largest |window mean − median of the window means| in units of the white-noise σ of a window
-    mean, over every column; returns (z, window index).
-
-    A robust step/bump test (not from the papers: a plain outlier test on block means). At rest a
-    dwell's samples are white noise about a constant, so block means of `window` samples scatter
-    with σ/√window, where the per-sample σ is estimated from first differences (std(Δx)/√2 for
-    white noise), robustly by the median over blocks so that a bump inflates nothing. `floor` is
-    the smallest per-sample σ (a quantized channel's step/√12).
-    """
-    x = np.asarray(samples, dtype=np.float64)
-    if x.ndim == 1:
-        x = x[:, None]
-    n_win = x.shape[0] // int(window)
-    if n_win < 3:
-        return 0.0, -1
-    blocks = x[: n_win * window].reshape(n_win, window, x.shape[1])
-    means = blocks.mean(axis=1)  # [n_win, k]
-    sigma = np.median(np.std(np.diff(blocks, axis=1), axis=1), axis=0) / np.sqrt(2.0)  # [k]
-    sigma = np.maximum(sigma, floor)
-    z = np.abs(means - np.median(means, axis=0)) / (np.maximum(sigma, 1e-300) / np.sqrt(window))
-    j = int(np.argmax(z.max(axis=1)))
-    return float(z[j].max()), j
-
-
-def _disturbance_valid(samples: np.ndarray, window: int) -> tuple[float, int]:
-    """:func:`disturbance_z` over the columns that have valid samples, each on its own valid samples
-    (NaN = flagged not valid, or an axis the unit lacks); the window index is of that column."""
-    best = (0.0, -1)
-    for col in np.asarray(samples, dtype=np.float64).T:
-        ok = col[np.isfinite(col)]
-        if ok.size:
-            best = max(best, disturbance_z(ok, window))
-    return best
 
 
 @dataclass
@@ -201,81 +149,75 @@ def settle_reached(z_windows_dph: list[np.ndarray], ratio: float, rest_dph: floa
     return abs(float(np.mean(b)) - float(np.mean(a))) <= 4.0 * noise + 1e-12
 
 
+@dataclass(frozen=True)
+class SequencerLimits:
+    """The sequencer's settings (host time-outs, retries, device-time grids) in one object.
+
+    `read_timeout_s`: host seconds a read may wait beyond the samples' own duration; `max_attempts`:
+    measurements of one position before the run stops; `dwell`: when a dwell is measured again
+    (estimators.dwell.DwellLimits); `stage_speed_deg_s` ([turntable] speed_deg_s, 0 unknown) bounds
+    each move (host timeout) and its settle (device time); `stage_settle_s` ([turntable] settle_s)
+    is the rest after READY of a unit without a gyro z; `dwell_grid_s`: a dwell starts on a multiple
+    of this many device seconds of IMU samples (so it does not depend on host timing);
+    `settle_margin_s`: device time dropped after the gyro-z settle criterion is met — it fires once
+    the ringing is below one window's noise; the margin lets it decay e^(margin/τ) further (28× for
+    the 0.3 s decay of the bench), so the dwell starts with the table at rest."""
+
+    chunk_s: float = 0.5
+    poll_s: float = 0.02
+    move_timeout_s: float = 120.0
+    read_timeout_s: float = 5.0
+    max_attempts: int = 3
+    dwell: DwellLimits = DwellLimits()
+    reconnect_timeout_s: float = 10.0
+    stage_speed_deg_s: float = 0.0
+    stage_settle_s: float = 5.0
+    dwell_grid_s: float = 1.0
+    settle_margin_s: float = 1.0
+
+    @classmethod
+    def from_options(cls, **options: Any) -> SequencerLimits:
+        """Limits from flat keyword options (a test's `seq_kwargs`): DwellLimits' fields go there."""
+        dwell_keys = {f for f in DwellLimits.__dataclass_fields__ if f in options}
+        dwell = DwellLimits(**{k: options.pop(k) for k in dwell_keys})
+        return cls(dwell=dwell, **options)
+
+
 class Sequencer:
-    """Runs the position plan on a turntable, an IMU and an accelerometer (drivers, opened)."""
+    """Runs the position plan on a rotary stage, an inertial stream and a tilt sensor (roles, opened)."""
 
     def __init__(
         self,
-        turntable: _Turntable,
-        imu: Any,
-        accelerometer: Any,
+        turntable: RotaryStage,
+        imu: InertialStream,
+        accelerometer: TiltSensor,
         run: RunConfig,
+        limits: SequencerLimits = SequencerLimits(),
         *,
         allow_home: bool = True,
         rundir: _EventLog | None = None,
         on_progress: Callable[[Progress], None] | None = None,
         stop_flag: StopFlag | None = None,
-        accel_rate_hz: float = 100.0,
-        chunk_s: float = 0.5,
-        poll_s: float = 0.02,
-        move_timeout_s: float = 120.0,
-        read_timeout_s: float = 5.0,
-        max_attempts: int = 3,
-        imu_max_gap_s: float = 0.1,
-        max_lost_fraction: float = 0.05,
-        accel_max_lost_fraction: float = 0.2,
-        disturbance_window_s: float = 0.1,
-        reconnect_timeout_s: float = 10.0,
         skip: set[int] | frozenset[int] = frozenset(),
-        stage_speed_deg_s: float = 0.0,
-        stage_settle_s: float = 5.0,
-        dwell_grid_s: float = 1.0,
-        settle_margin_s: float = 1.0,
     ):
-        """`read_timeout_s`: host seconds a read may wait beyond the samples' own duration;
-        `max_attempts`: measurements of one position before the run stops; a dwell is measured
-        again when the IMU stream has a gap longer than `imu_max_gap_s` (device time) or loses
-        more than `max_lost_fraction` of its samples, the accelerometer loses more than
-        `accel_max_lost_fraction`, or a disturbance shows (DISTURBANCE_Z); `skip`: plan indices
-        already measured (--resume); `stage_speed_deg_s` ([turntable] speed_deg_s, 0 unknown) bounds
-        each move (host timeout) and its settle (device time); `stage_settle_s` ([turntable] settle_s)
-        is the rest after READY of a unit without a gyro z; `dwell_grid_s`: a dwell starts on a
-        multiple of this many device seconds of IMU samples (so it does not depend on host timing);
-        `settle_margin_s`: device time dropped after the gyro-z settle criterion is met — it fires once
-        the ringing is below one window's noise; the margin lets it decay e^(margin/τ) further (28×
-        for the 0.3 s decay of the bench), so the dwell starts with the table at rest."""
+        """`skip`: plan indices already measured (--resume)."""
         self.turntable = turntable
         self.imu = imu
         self.accel = accelerometer
         self.run_cfg = run
+        self.limits = limits
         self.allow_home = allow_home
         self.rundir = rundir
         self.on_progress = on_progress or (lambda p: None)
         self.stop_flag = stop_flag if stop_flag is not None else StopFlag()
-        self.accel_rate_hz = float(accel_rate_hz)
-        self.chunk_s = chunk_s
-        self.poll_s = poll_s
-        self.move_timeout_s = move_timeout_s
-        self.read_timeout_s = float(read_timeout_s)
-        self.max_attempts = int(max_attempts)
-        self.imu_max_gap_s = float(imu_max_gap_s)
-        self.max_lost_fraction = float(max_lost_fraction)
-        self.accel_max_lost_fraction = float(accel_max_lost_fraction)
-        self.disturbance_window_s = float(disturbance_window_s)
-        self.reconnect_timeout_s = float(reconnect_timeout_s)
+        self.accel_rate_hz = float(accelerometer.rate_hz)
         self.skip = frozenset(int(k) for k in skip)
-        self.stage_speed_deg_s = float(stage_speed_deg_s)
-        self.stage_settle_s = float(stage_settle_s)
-        self.dwell_grid_s = float(dwell_grid_s)
-        self.settle_margin_s = float(settle_margin_s)
         self._move_deg = 0.0
         self._homing_travel_deg = 0.0
         """How far homing turned the table before the first position: its motion may still be in the
         IMU bytes a USB link holds back, so the first settle waits to see it (|Δα|, deg)."""
         self.positions: list[PositionMeans] = []
         self._plan: list[float] = []
-        self._accel_silent_at: int | None = None
-        """Heartbeat count when the last wait for a "stopped" report timed out (None: it did not)."""
 
     # -- helpers -----------------------------------------------------------------------------
     def _event(self, event: dict[str, Any]) -> None:
@@ -287,9 +229,9 @@ class Sequencer:
             state = None
             moving = None
             try:
-                st = self.turntable.stop()
-                state = st.state_name
-                moving = bool(st.is_moving or st.is_homing)
+                st = self.turntable.halt()
+                state = st.name
+                moving = bool(st.moving or st.homing)
             except Exception as exc:  # noqa: BLE001 - report, then still save and exit
                 log.warning("could not stop the stage cleanly: %s", exc)
                 state = f"unknown ({exc})"
@@ -308,7 +250,7 @@ class Sequencer:
     def plan_deg(self) -> list[float]:
         """The commanded angles, each shifted by whole turns into the stage's soft limits; for a
         sweep the long-way targets of estimators.plan.sweep_targets_deg, which need −360…+360."""
-        lo, hi = self.turntable.soft_limits_deg()
+        lo, hi = self.turntable.limits_deg()
         if self.run_cfg.plan == "sweep":
             targets = sweep_targets_deg(self.run_cfg.positions, self.run_cfg.start_deg)
             if min(targets) < lo - 1e-9 or max(targets) > hi + 1e-9:
@@ -336,112 +278,108 @@ class Sequencer:
     def _move_duration_s(self, move_deg: float) -> float:
         """An upper bound of a move's duration [s] from its length and the stage's speed (the slowest
         supported when unknown), with its acceleration ramps (at most a second at 1 deg/s)."""
-        speed = self.stage_speed_deg_s if self.stage_speed_deg_s > 0 else SLOWEST_STAGE_DEG_S
+        speed = self.limits.stage_speed_deg_s if self.limits.stage_speed_deg_s > 0 else SLOWEST_STAGE_DEG_S
         return abs(move_deg) / speed + 2.0
 
     def _poll_ready(self, what: str, move_deg: float = 0.0) -> None:
-        """Poll TS until READY (checking the stop flag); StageError naming state and letter. The
-        host time-out is move_timeout_s, or twice the move's bound when that is longer."""
-        timeout_s = max(self.move_timeout_s, 2.0 * self._move_duration_s(move_deg))
+        """Poll the stage's state until READY (checking the stop flag); StageFault naming the state and
+        the model's reason. The host time-out is move_timeout_s, or twice the move's bound when that
+        is longer."""
+        timeout_s = max(self.limits.move_timeout_s, 2.0 * self._move_duration_s(move_deg))
         deadline = time.monotonic() + timeout_s
         while True:
             self._check_stop()
-            st = self.turntable.status()
-            if st.is_ready and not st.errors:
+            st = self.turntable.state()
+            if st.ready:
                 return
-            if st.is_disabled or st.errors or not (st.is_referenced or st.is_homing):
-                self.turntable.wait_ready(timeout_s=0.0)  # raises StageError naming the state and letter
+            if st.fault or not (st.referenced or st.homing):
+                self.turntable.raise_fault(st)
                 return
             if time.monotonic() > deadline:
                 raise DeviceError(
                     "turntable",
-                    getattr(self.turntable, "port", None),
+                    self.turntable.port,
                     f"not READY {timeout_s:g} s after {what} "
-                    f"(state {st.state_name}) — check the stage's speed and load",
+                    f"(state {st.name}) — check the stage's speed and load",
                 )
-            time.sleep(self.poll_s)
+            time.sleep(self.limits.poll_s)
 
     def _move_once(self, target_deg: float) -> None:
-        self.turntable.move_absolute_deg(target_deg, wait=False)
+        self.turntable.start_move(target_deg)
         self._poll_ready(f"the move to {target_deg:g}°", self._move_deg)
 
+    def _stage_error(self, target_deg: float, attempt: int, exc: StageFault) -> None:
+        self._event({"event": "stage_error", "target_deg": target_deg, "attempt": attempt, "error": str(exc),
+                     "state": exc.state_name, "reason": exc.reason})
+
     def _move(self, target_deg: float) -> None:
-        """Move and wait for READY. A stage error (following error / stall → DISABLE) is logged,
-        the controller re-enabled with MM1 and the move tried once more; a second failure stops
-        the stage and the run (RunFailed, the data so far kept)."""
+        """Move and wait for READY. A stage fault (following error / stall → disabled) is logged, the
+        stage re-enabled and the move tried once more; a second failure stops the stage and the run
+        (RunFailed, the data so far kept)."""
         try:
             self._move_once(target_deg)
             return
-        except StageError as exc:
-            self._event({"event": "stage_error", "target_deg": target_deg, "attempt": 1, "error": str(exc),
-                         "state": exc.state_name, "letter": exc.letter})
-            log.warning("%s; re-enabling (MM1) and trying the move once more", exc)
+        except StageFault as exc:
+            self._stage_error(target_deg, 1, exc)
+            log.warning("%s; re-enabling and trying the move once more", exc)
             first = exc
         try:
-            self.turntable.enable()
+            self.turntable.re_enable()
             self._move_once(target_deg)
-        except StageError as exc:
-            self._event({"event": "stage_error", "target_deg": target_deg, "attempt": 2, "error": str(exc),
-                         "state": exc.state_name, "letter": exc.letter})
+        except StageFault as exc:
+            self._stage_error(target_deg, 2, exc)
             state = self._safe_stop()
             raise RunFailed(
-                f"turntable on {getattr(self.turntable, 'port', '?')}: the move to {target_deg:g}° failed "
+                f"turntable on {self.turntable.port or '?'}: the move to {target_deg:g}° failed "
                 f"twice ({first}; then {exc}); stage stopped ({state})",
                 list(self.positions),
             ) from None
 
     def _safe_stop(self) -> str:
         try:
-            return str(self.turntable.stop().state_name)
+            return str(self.turntable.halt().name)
         except Exception as exc:  # noqa: BLE001 - the run is stopping anyway; say so
             return f"unknown ({exc})"
 
     def _reference(self) -> None:
-        """Home the stage if it is not referenced (stop-flag aware), or a clear StageError when
+        """Home the stage if it is not referenced (stop-flag aware), or a clear StageFault when
         homing is not allowed; wait if it is busy."""
-        st = self.turntable.status()
-        if st.is_referenced and not st.is_homing:
-            self.turntable.ensure_referenced(allow_home=self.allow_home)
+        st = self.turntable.state()
+        if st.referenced and not st.homing:
+            if st.moving:
+                self._poll_ready("the stage's own move")
+            elif not st.ready:
+                self.turntable.raise_fault(st)
             return
-        if not st.is_homing:
+        if not st.homing:
             if not self.allow_home:
-                raise StageError(
-                    getattr(self.turntable, "port", None),
-                    "the stage is not referenced and homing is disabled ([turntable] allow_home = false) — "
-                    "home it (OR) or set allow_home = true",
-                    state=st.state,
-                    errors=st.errors,
-                )
-            self._event({"event": "home", "state": st.state_name})
+                raise self.turntable.not_referenced_fault(st)
+            self._event({"event": "home", "state": st.name})
             before_deg = self._encoder_or_none()
             self.imu.discard_pending()  # what is left is from before the home command
-            self.turntable.home(wait=False)
-            self._poll_ready("homing (OR)")
+            self.turntable.start_home()
+            self._poll_ready("homing")
             after_deg = self._encoder_or_none()
             # unknown start: assume a visible travel (the first settle then waits for motion in gyro z)
             known = before_deg is not None and after_deg is not None
             self._homing_travel_deg = abs(after_deg - before_deg) if known else 360.0
             return
-        self._poll_ready("homing (OR)")
+        self._poll_ready("homing")
 
     def _encoder_or_none(self) -> float | None:
         try:
-            return float(self.turntable.position_deg())
+            return float(self.turntable.angle_deg())
         except (DeviceError, ValueError):
             return None
 
-    def _read_imu(self, n: int) -> Any:
-        wait_s = 2.0 * n / self.imu.rate_hz + self.read_timeout_s
-        return self.imu.read(n, timeout_s=max(self.read_timeout_s, wait_s))
+    def _read_imu(self, n: int) -> ImuBlock:
+        return self.imu.read_samples(n, self.limits.read_timeout_s)
 
     def _has_gyro_z(self) -> bool:
-        """Whether the unit has a gyro z (status bits); drivers without `axes` are assumed to."""
-        axes = getattr(self.imu, "axes", None)
-        return axes is None or "z" in axes.gyro
+        return self.imu.has_gyro_z()
 
     def _gyro_axes(self) -> str:
-        axes = getattr(self.imu, "axes", None)
-        return "xyz" if axes is None else axes.gyro
+        return self.imu.axes.gyro
 
     def _align_to_grid(self, n_grid: int) -> None:
         """Read (and drop) samples until the next one's device index is a multiple of `n_grid`, so
@@ -464,7 +402,7 @@ class Sequencer:
         n_win = max(2, int(round(cfg.settle_window_s * rate)))
         if not self._has_gyro_z():
             self.imu.discard_pending()  # READY has been seen: what arrived so far may be older
-            n_settle = int(round(self.stage_settle_s * rate))
+            n_settle = int(round(self.limits.stage_settle_s * rate))
             if n_settle:
                 self._read_imu(n_settle)
             return SettleResult(n_settle / rate, True, 0)
@@ -483,7 +421,7 @@ class Sequencer:
             else:
                 raise DeviceError(
                     "imu",
-                    getattr(self.imu, "port", None),
+                    self.imu.port,
                     "the gyro z axis showed no table motion during the move — is the IMU on the table, "
                     "its z along the table axis?",
                 )
@@ -502,46 +440,13 @@ class Sequencer:
 
     def _settle_margin(self, rate: float) -> float:
         """Drop settle_margin_s of samples after the settle criterion; returns that time [s]."""
-        n = int(round(self.settle_margin_s * rate))
+        n = int(round(self.limits.settle_margin_s * rate))
         if n:
             self._read_imu(n)
         return n / rate
 
-    def _start_accelerometer(self, quiet_s: float = 0.1, timeout_s: float = 10.0) -> None:
-        """NMT start, once everything the node sent before the last NMT stop has arrived (and is dropped).
-
-        Decided in device order: a heartbeat reporting "stopped" after the stop command comes after
-        every TPDO the node sent before it (the bus keeps a node's order), so what is pending then
-        is all from before the stop. A node whose heartbeat is off or lost (no report within
-        STOPPED_REPORT_WAIT_S; not waited for again until a heartbeat comes back): the link is
-        drained until nothing arrives for quiet_s — host time, and the events log says so.
-        """
-        hb = int(self.accel.stats.heartbeats)
-        waited = self._accel_silent_at != hb and self.accel.wait_stopped_report(STOPPED_REPORT_WAIT_S)
-        if waited:
-            self._accel_silent_at = None
-            self.accel.discard_pending()
-            self.accel.start_node()
-            return
-        if self._accel_silent_at != hb:
-            self._event({"event": "accel_drain", "by": "host quiet",
-                         "why": "no heartbeat reported the node stopped"})
-        self._accel_silent_at = int(self.accel.stats.heartbeats)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self._check_stop()
-            if self.accel.discard_pending() == 0:
-                time.sleep(quiet_s)
-                if self.accel.discard_pending() == 0:
-                    break
-            else:
-                time.sleep(0.02)
-        self.accel.start_node()
-
-    def _read_accel(self, n: int) -> Any:
-        return self.accel.read(
-            n, timeout_s=max(self.read_timeout_s, 2.0 * n / self.accel_rate_hz + self.read_timeout_s)
-        )
+    def _read_accel(self, n: int) -> AccelBlock:
+        return self.accel.read_samples(n, self.limits.read_timeout_s)
 
     def dwell(self, index: int, target_deg: float, settle_s: float = 0.0) -> tuple[list[Any], Any]:
         """Collect dwell_s·rate IMU samples right after settling (in chunks, reporting live
@@ -555,8 +460,8 @@ class Sequencer:
         cfg = self.run_cfg
         rate = float(self.imu.rate_hz)
         n_total = max(2, int(round(cfg.dwell_s * rate)))
-        n_chunk = max(1, int(round(self.chunk_s * rate)))
-        n_grid = int(round(self.dwell_grid_s * rate))
+        n_chunk = max(1, int(round(self.limits.chunk_s * rate)))
+        n_grid = int(round(self.limits.dwell_grid_s * rate))
         if n_grid > 1:
             self._align_to_grid(n_grid)
         blocks = []
@@ -620,7 +525,7 @@ class Sequencer:
             if i in self.skip:
                 continue
             self._measure_position(i, target)
-        self.accel.stop_node()
+        self.accel.pause()
         if self.run_cfg.return_to_start:
             self.on_progress(Progress(n, n, "return", self._plan[0]))
             self._return_to_start()
@@ -634,7 +539,7 @@ class Sequencer:
         so the time the return takes is not lost to it."""
         target = self._plan[0]
         pin = self.run_cfg.plan in MOTION_KINDS and self._has_gyro_z()
-        here = float(self.turntable.position_deg()) if pin else target
+        here = float(self.turntable.angle_deg()) if pin else target
         if pin:
             self.imu.discard_pending()  # what is left is from before the move command
         self._move(target)
@@ -651,7 +556,7 @@ class Sequencer:
         idx = np.asarray(rest.sample_index)
         self._event({
             "event": "returned", "commanded_deg": target,
-            "table_angle_deg": float(self.turntable.position_deg()),
+            "table_angle_deg": float(self.turntable.angle_deg()),
             "settle": settle.as_event(),
             "imu": {"first_index": int(idx[0]), "last_index": int(idx[-1]), "samples": int(idx.size)},
         })
@@ -661,39 +566,39 @@ class Sequencer:
         accelerometer timed out or vanished, lost too much, or the dwell shows a disturbance."""
         n = len(self._plan)
         reasons: list[str] = []
-        for attempt in range(1, self.max_attempts + 1):
+        for attempt in range(1, self.limits.max_attempts + 1):
             self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
             try:
-                here = float(self.turntable.position_deg())
+                here = float(self.turntable.angle_deg())
                 self._move_deg = target - here
                 # homing's motion, not yet seen in the IMU data, counts as part of the first move;
                 # the data since the home command are kept for that (discarded before it)
                 travel_deg = abs(self._move_deg) + self._homing_travel_deg
-                self.accel.stop_node()  # quiet during the move; started again after the settle
+                self.accel.pause()  # quiet during the move; started again after the settle
                 if not self._homing_travel_deg:
                     self.imu.discard_pending()  # what is left is from before the move command
                 self._move(target)
                 self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
-                self._start_accelerometer()  # at READY: its first samples are skipped by the settle time
+                # at READY: its first samples are skipped by the settle time
+                self.accel.resume(self._check_stop, self._event)
                 settle = self.settle(expect_motion=travel_deg >= MIN_VISIBLE_MOVE_DEG, move_deg=travel_deg)
                 self._homing_travel_deg = 0.0
-                hb0, emcy0 = self._accel_counts()
+                hb0, emcy0 = self.accel.counts()
                 blocks, accel_block = self.dwell(i, target, settle.rest_before_dwell_s)
-                hb1, emcy1 = self._accel_counts()
-            except StageError:
+                hb1, emcy1 = self.accel.counts()
+            except StageFault:
                 raise  # _move already retried once
             except DeviceError as exc:
                 if exc.device not in ("imu", "accelerometer"):
                     raise
                 reason = f"{exc.device} read failed: {exc}"
-                if exc.device == "imu" and getattr(self.imu, "failed", None) is not None:
-                    self._reconnect_imu(i, exc)
+                if exc.device == "imu" and self._reconnect_imu(i, exc):
                     reason = f"imu link lost and reconnected: {exc}"
             else:
                 problems = self.dwell_problems(blocks, accel_block)
                 if not problems:
                     self._check_stop()
-                    angle_deg = float(self.turntable.position_deg())
+                    angle_deg = float(self.turntable.angle_deg())
                     self._flush_logs()
                     extra = {"attempt": attempt, "heartbeats": hb1 - hb0, "emcy": emcy1 - emcy0}
                     means = self._record(i, target, angle_deg, settle, blocks, accel_block, extra)
@@ -718,121 +623,43 @@ class Sequencer:
             self._check_stop()
         self._flush_logs()
         raise RunFailed(
-            f"position {i + 1} of {n} ({target:g}°) failed {self.max_attempts} times — last: {reasons[-1]}",
+            f"position {i + 1} of {n} ({target:g}°) failed {self.limits.max_attempts} times — "
+            f"last: {reasons[-1]}",
             list(self.positions),
         )
 
-    def _reconnect_imu(self, i: int, exc: DeviceError) -> None:
-        """The IMU port vanished: re-open it with backoff (Imu.reconnect) and log how it went."""
-        t0 = time.monotonic()
+    def _reconnect_imu(self, i: int, exc: DeviceError) -> bool:
+        """After a failed IMU read: re-open its link if it vanished (InertialStream.recover) and log how
+        it went; False when the link was there (the read just timed out)."""
         try:
-            attempts = self.imu.reconnect(timeout_s=self.reconnect_timeout_s)
+            outcome = self.imu.recover(self.limits.reconnect_timeout_s)
         except DeviceError as again:
             self._event({"event": "imu_reconnect", "index": i, "ok": False, "error": str(again)})
-            raise RunFailed(
-                f"{again} (after: {exc})", list(self.positions)
-            ) from None
-        self._event(
-            {"event": "imu_reconnect", "index": i, "ok": True, "attempts": attempts,
-             "wall_s": round(time.monotonic() - t0, 3), "error": str(exc)}
-        )
+            raise RunFailed(f"{again} (after: {exc})", list(self.positions)) from None
+        if outcome is None:
+            return False
+        self._event({"event": "imu_reconnect", "index": i, "ok": True, **outcome, "error": str(exc)})
+        return True
 
-    def _accel_counts(self) -> tuple[int, int]:
-        st = self.accel.stats
-        return int(getattr(st, "heartbeats", 0)), int(getattr(st, "emcy", 0))
-
-    def dwell_problems(self, blocks: list[Any], accel_block: Any) -> list[str]:
-        """Why a dwell must be measured again (empty if it is good): a gap or too many lost
-        samples (device sample counters), or a disturbance in the gyro/accelerometer statistics."""
-        out = []
-        rate = float(self.imu.rate_hz)
-        idx = np.concatenate([np.asarray(b.sample_index) for b in blocks])
-        gap = int(np.max(np.diff(idx))) - 1 if idx.size > 1 else 0
-        lost = int(idx[-1] - idx[0] + 1 - idx.size)
-        stalls = [k for k in getattr(self.imu, "stall_indices", []) if idx[0] < k <= idx[-1]]
-        if stalls:
-            out.append(
-                f"imu stream paused (silent) inside the dwell at sample {stalls[0]}: a timeout or bytes lost "
-                "on the line, its length unknown (the 7-bit sequence wraps)"
-            )
-        elif gap > self.imu_max_gap_s * rate:
-            out.append(f"imu gap of {gap} samples ({gap / rate:.3f} s device time) inside the dwell")
-        elif lost > self.max_lost_fraction * idx.size:
-            out.append(f"imu lost {lost} of {lost + idx.size} samples")
-        gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0) / DPH
-        imu_acc = np.concatenate([np.asarray(b.accel_g) for b in blocks], axis=0)
-        out += self._invalid_problems(gyro, idx.size)
-        counter = np.asarray(accel_block.counter)
-        a_lost = int(accel_block.lost_samples)
-        if a_lost > self.accel_max_lost_fraction * max(counter.size, 1):
-            out.append(f"accelerometer lost {a_lost} of {a_lost + counter.size} samples (too few)")
-        if out:
-            return out
-        w = max(10, int(round(self.disturbance_window_s * rate)))
-        z, j = _disturbance_valid(np.hstack([gyro, imu_acc]), w)
-        wa = max(5, int(round(2.0 * self.disturbance_window_s * self.accel_rate_hz)))
-        za, ja = disturbance_z(np.asarray(accel_block.accel_g), wa, floor=1e-6 / np.sqrt(12.0))
-        if z > DISTURBANCE_Z:
-            out.append(
-                f"disturbance: IMU window {j} ({j * w / rate:.2f} s into the dwell) is {z:.1f} σ "
-                "off the dwell's level"
-            )
-        if za > DISTURBANCE_Z:
-            out.append(
-                f"disturbance: accelerometer window {ja} ({ja * wa / self.accel_rate_hz:.2f} s into "
-                f"its dwell) is {za:.1f} σ off"
-            )
-        return out
-
-    def _invalid_problems(self, gyro_dph: np.ndarray, n: int) -> list[str]:
-        """Too many samples flagged not valid on a gyro axis the fit needs: measured again like a
-        dwell that lost them."""
-        out = []
-        for a in self._gyro_axes():
-            bad = int(np.count_nonzero(np.isnan(gyro_dph[:, "xyz".index(a)])))
-            if bad > self.max_lost_fraction * n:
-                out.append(f"imu gyro {a}: {bad} of {n} samples flagged not valid (status bit cleared)")
-        return out
+    def dwell_problems(self, blocks: list[ImuBlock], accel_block: AccelBlock) -> list[str]:
+        """Why a dwell must be measured again (estimators.dwell.dwell_problems); empty if it is good."""
+        return dwell_problems(blocks, accel_block, imu_rate_hz=float(self.imu.rate_hz),
+                              accel_rate_hz=self.accel_rate_hz, gyro_axes=self._gyro_axes(),
+                              stalls=self.imu.stall_indices, limits=self.limits.dwell)
 
     def log_stats(self) -> None:
-        """The drivers' counters for this session (bad CRC, resyncs, lost, EMCY…) to the events log."""
+        """The devices' counters for this session (bad CRC, resyncs, lost, EMCY…) to the events log."""
         try:
-            imu_stats = self.imu.stats
-            acc_stats = self.accel.stats
-            emcy = [
-                {"code": int(e.code), "register": int(e.register), "meaning": str(e.meaning)}
-                for e in self.accel.emergencies
-            ]
+            counters = {**self.imu.counters(), **self.accel.counters()}
         except Exception as exc:  # noqa: BLE001 - counters are a report, never a reason to fail
             log.warning("could not read the drivers' counters: %s", exc)
             return
-        self._event(
-            {
-                "event": "stats",
-                "imu": imu_stats.as_dict() if hasattr(imu_stats, "as_dict") else dict(vars(imu_stats)),
-                "imu_reconnects": int(getattr(self.imu, "reconnects", 0)),
-                "imu_stalls": len(getattr(self.imu, "stall_indices", [])),
-                "imu_axes": self._gyro_axes(),
-                "imu_accel_axes": getattr(getattr(self.imu, "axes", None), "accel", "xyz"),
-                "accel": acc_stats.as_dict() if hasattr(acc_stats, "as_dict") else dict(vars(acc_stats)),
-                "emergencies": emcy,
-            }
-        )
+        self._event({"event": "stats", **counters})
 
     def _flush_logs(self) -> None:
         """Push the raw logs to disk after each position (the IMU and stage transports flush every
-        write; the CAN log is a python-can writer that buffers)."""
-        flush = getattr(self.accel, "flush_log", None)
-        if callable(flush):
-            flush()
-            return
-        # Until the Accelerometer driver has flush_log(): its can.Logger's file, under its lock
-        # (the notifier thread writes to it).
-        lock = getattr(self.accel, "_lock", None) or contextlib.nullcontext()
-        with lock:
-            handle = getattr(getattr(self.accel, "_logger", None), "file", None)
-            if handle is not None and not handle.closed:
-                handle.flush()
+        write; the tilt sensor's log may buffer)."""
+        self.accel.flush_log()
 
     def _record(
         self,

@@ -67,7 +67,7 @@ def _find(tmp_path: Path, sim_toml: str, faults: tuple[str, ...] = (), seed: int
           time_scale: float = TIME_SCALE, **bench: float) -> tuple[Path, dict, str]:
     """One find on firmware-sim with `sim_toml` (+ the 50 Hz node); the run dir, result and the
     IMU probe's line from `northfinder check`."""
-    from northfinder.cli.check import probe_imu
+    from northfinder.cli.check import probe as check_probe
     from northfinder.runs.find import measure
 
     conf = tmp_path / "sim.toml"
@@ -86,7 +86,7 @@ def _find(tmp_path: Path, sim_toml: str, faults: tuple[str, ...] = (), seed: int
         cfg.validate()
         result = measure(cfg, RunDir(run_dir), settings=settings, report=False,
                          can_kwargs={"sleep_after_open": 0.05})
-        probe = probe_imu(cfg)  # after the run: the simulator is warmed up (check waits 2 s)
+        probe = check_probe("imu")(cfg)  # after the run: the simulator is warmed up (check waits 2 s)
     return run_dir, result, probe
 
 

@@ -30,9 +30,10 @@ import pytest
 
 from northfinder.config import BenchConfig
 from northfinder.errors import ConfigError, DeviceError
+from northfinder.estimators.dwell import DISTURBANCE_Z, disturbance_z
 from northfinder.rundir import EVENTS, RESULT, RunDir, jsonable
 from northfinder.runs.find import replay
-from northfinder.sequencer import DISTURBANCE_Z, RunFailed, disturbance_z
+from northfinder.sequencer import RunFailed
 from northfinder.simulate import SimSettings, bench_config
 
 pytestmark = pytest.mark.slow
@@ -340,14 +341,15 @@ def test_imu_silent_during_the_return_keeps_the_complete_run_and_ends_the_fit_at
 
 def test_stage_not_referenced_is_homed_or_a_clear_error_when_homing_is_disabled(tmp_path):
     from firmware_sim.simulator import Simulator
-    from northfinder.drivers.turntable import StageError, Turntable
+    from northfinder.devices.stage import StageFault
+    from northfinder.drivers.turntable import Turntable
     from northfinder.runs.find import measure
 
     with Simulator(_sim_config([])) as endpoints:
         cfg = bench_config(endpoints, TRUTH["latitude_deg"])
         cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
         cfg.turntable.allow_home = False
-        with pytest.raises(StageError) as info:
+        with pytest.raises(StageFault) as info:
             measure(cfg.validate(), RunDir(tmp_path / "run"), report=False,)
         assert "not referenced" in str(info.value) and "allow_home" in str(info.value)
         assert endpoints["turntable"] in str(info.value)

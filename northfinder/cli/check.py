@@ -1,7 +1,8 @@
 """`northfinder check --config bench.toml`: probe each device and say what answered.
 
-One line per device: the stage's version and state, the IMU's rate and format (and that data
-flows), the accelerometer's heartbeat state; one clear line for each device that did not answer.
+One line per device, the model's own (devices.registry: the stage's version and state, the IMU's
+rate and format and that data flows, the accelerometer's heartbeat state and identity) with the
+model's name; one clear line for each device that did not answer.
 Exit 0 only if every device answered.
 """
 
@@ -12,9 +13,8 @@ import math
 from collections.abc import Callable
 
 from northfinder import config as bench
+from northfinder.devices import registry
 from northfinder.errors import ConfigError, DeviceError, NorthfinderError
-
-HEARTBEAT_STATES = {0x00: "boot-up", 0x04: "stopped", 0x05: "operational", 0x7F: "pre-operational"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,60 +25,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def probe_turntable(cfg: bench.BenchConfig) -> str:
-    from northfinder.drivers.turntable import Turntable
+def probe(role: str) -> Callable[[bench.BenchConfig], str]:
+    """The probe of a role: open the section's model (registry), ask its check line, name the model."""
 
-    t = cfg.turntable
-    with Turntable(t.port, address=t.address, baudrate=t.baudrate, timeout_s=5.0) as tt:
-        version = tt.version()
-        st = tt.status()
-        errors = ", ".join(st.error_names) if st.errors else "no errors"
-        return f"turntable on {t.port}: {version}; state {st.state_name} (0x{st.state:02X}), {errors}"
+    def fn(cfg: bench.BenchConfig) -> str:
+        section = getattr(cfg, role)
+        options = {"eds_path": bench.accel_eds_path(cfg)} if role == "accelerometer" else {}
+        with registry.open_device(role, section, None, **options) as device:
+            return f"{device.check_line()} [model {device.model_name}]"
 
-
-def probe_imu(cfg: bench.BenchConfig) -> str:
-    from northfinder.drivers.imu import Imu
-
-    i = cfg.imu
-    with Imu(i.port, baudrate=i.baudrate) as imu:
-        rate = imu.query("DR")
-        fmt = imu.query("ROTFMT")
-        units = imu.query("ROTUNITS")
-        block = imu.read(max(2, int(imu.rate_hz // 10)), timeout_s=3.0)
-        axes = imu.axes
-        stats = imu.stats
-        if "y" not in axes.gyro:
-            raise DeviceError("imu", i.port, f"{axes.describe()} (status bits): north finding needs a "
-                              "gyro y, or x and y — is it the right unit, mounted y along the table plane?")
-        settle = "settles by gyro z" if "z" in axes.gyro else "no gyro z: READY + [turntable] settle_s"
-        return (
-            f"imu on {i.port}: {rate} Hz, format A, {fmt} {units}; {axes.describe()} ({settle}); "
-            f"{len(block.sample_index)} samples read, {stats.bad_crc} bad CRC, {stats.lost_samples} lost"
-        )
-
-
-def probe_accelerometer(cfg: bench.BenchConfig) -> str:
-    from northfinder.drivers.accelerometer import Accelerometer
-
-    a = cfg.accelerometer
-    with Accelerometer(
-        a.interface, a.channel, bitrate=a.bitrate, node_id=a.node_id, bus_options=a.bus_options or None,
-        eds_path=bench.accel_eds_path(cfg),
-    ) as acc:
-        state = acc.wait_heartbeat(timeout_s=3.0)
-        if state == 0x04:  # stopped: CiA 301 has no SDO there; pre-operational changes nothing else
-            acc.enter_pre_operational()
-        ident = acc.identity()  # SDO, read only: check writes nothing to the node
-        layout = acc.read_mapping()
-        rate_hz = acc.read_rate(a.rate_object)
-    name = HEARTBEAT_STATES.get(state, f"unknown 0x{state:02X}")
-    return (
-        f"accelerometer node 0x{a.node_id:02X} on {a.interface} {a.channel}: heartbeat {name} "
-        f"(0x{state:02X}); "
-        f"{ident['device_name']!r}, vendor ID 0x{ident['vendor_id']:08X}, product code "
-        f"0x{ident['product_code']:08X}, revision 0x{ident['revision']:08X}, serial number "
-        f"0x{ident['serial_number']:08X}; rate {rate_hz:g} Hz ({a.rate_object}); mapping {layout.describe()}"
-    )
+    return fn
 
 
 def _probe(
@@ -105,9 +61,9 @@ def run(args: argparse.Namespace) -> int:
             "each device needs its own port"
         )
     results = [
-        _probe("turntable", cfg.turntable.port, probe_turntable, cfg),
-        _probe("imu", cfg.imu.port, probe_imu, cfg),
-        _probe("accelerometer", cfg.accelerometer.channel, probe_accelerometer, cfg),
+        _probe("turntable", cfg.turntable.port, probe("turntable"), cfg),
+        _probe("imu", cfg.imu.port, probe("imu"), cfg),
+        _probe("accelerometer", cfg.accelerometer.channel, probe("accelerometer"), cfg),
     ]
     for ok, line in results:
         print(("ok    " if ok else "FAIL  ") + line)

@@ -11,7 +11,6 @@ a directory that is not a run (or a usage error), 4 for a damaged run (a raw log
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 from pathlib import Path
 from typing import Any
@@ -20,15 +19,12 @@ from northfinder import config as bench
 from northfinder.cli import _align_summary
 from northfinder.cli._summary import print_summary
 from northfinder.rundir import RESULT, RunDir, jsonable
-from northfinder.runs.find import replay
+from northfinder.runs import kinds
 
 INCOMPLETE_EXIT = 1
 
-# run kind -> (module with the replay function, its name, its printer in cli/_align_summary.py)
-ALIGN_REPLAYS = {
-    "align-gnss": ("northfinder.runs.gnss", "replay_gnss_run", "print_gnss_summary"),
-    "align-swaying": ("northfinder.runs.swaying", "replay_swaying_run", "print_swaying_summary"),
-}
+# run kind -> its printer in cli/_align_summary.py (a find prints with cli/_summary.py)
+ALIGN_SUMMARIES = {"align-gnss": "print_gnss_summary", "align-swaying": "print_swaying_summary"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -60,17 +56,9 @@ def differences(live: dict[str, Any], again: dict[str, Any], prefix: str = "") -
     return out
 
 
-def _run_kind(run_dir: str | Path) -> str:
-    path = Path(run_dir) / "config.json"
-    try:
-        return str(json.loads(path.read_text(encoding="utf-8")).get("kind", "find"))
-    except (OSError, ValueError, AttributeError):
-        return "find"  # the find replay names what is missing
-
-
 def _replay_align(args: argparse.Namespace, kind: str) -> int:
-    module_name, function_name, summary_name = ALIGN_REPLAYS[kind]
-    result, complete = getattr(importlib.import_module(module_name), function_name)(args.run_dir)
+    replayed = kinds.KINDS[kind].replay(args.run_dir)
+    result, complete = replayed.result, replayed.complete
     rd = RunDir(args.run_dir, create=False)
     again = json.loads(json.dumps(jsonable(result)))
     live_path = rd.file(RESULT)
@@ -86,17 +74,17 @@ def _replay_align(args: argparse.Namespace, kind: str) -> int:
     shown = f"{heading:.6f}° ± {sigma:.6f}°" if heading is not None and sigma is not None else "none"
     print(f"{rd.path}: {state} {kind} run; replayed heading {shown}, {verdict}")
     if not args.quiet:
-        getattr(_align_summary, summary_name)(again)
+        getattr(_align_summary, ALIGN_SUMMARIES[kind])(again)
     if args.json:
         RunDir(Path(args.json).parent, create=True).write_json(Path(args.json).name, again)
     return 0 if complete else INCOMPLETE_EXIT
 
 
 def run(args: argparse.Namespace) -> int:
-    kind = _run_kind(args.run_dir)
-    if kind in ALIGN_REPLAYS:
+    kind = kinds.kind_of(args.run_dir).kind
+    if kind != "find":
         return _replay_align(args, kind)
-    outcome = replay(args.run_dir, method=args.method)
+    outcome = kinds.KINDS["find"].replay(args.run_dir, method=args.method)
     rd = RunDir(args.run_dir, create=False)
     state = "complete" if outcome.complete else "incomplete"
     head = f"{rd.path}: {state} run, {outcome.positions_measured} of {outcome.positions_planned} positions"

@@ -23,6 +23,8 @@ from pathlib import Path
 import cantools
 import numpy as np
 
+from northfinder.devices.tilt import AccelBlock  # the role's data type, re-exported
+
 __all__ = [
     "DBC_NODE_ID",
     "DEFAULT_DBC_PATH",
@@ -428,20 +430,6 @@ class AccelFrameDecoder:
 
 
 # -- decoded samples in edge units (the live driver and replay share these) --------------------
-@dataclass(frozen=True)
-class AccelBlock:
-    """Consecutive paired samples. `lost_samples` counts gaps inside the block."""
-
-    counter: np.ndarray  # int64 [n], unwrapped device counter
-    accel_g: np.ndarray  # float64 [n, 3]
-    temperature_c: np.ndarray  # float64 [n]
-    status: np.ndarray  # uint8 [n]
-    lost_samples: int
-
-    def __len__(self) -> int:
-        return len(self.counter)
-
-
 def _divisor(scale: float) -> float:
     """1e-6 → 1e6: dividing by the exact integer rounds µg → g correctly."""
     inv = 1.0 / scale

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from northfinder.devices.imu import ImuAxes, ImuBlock  # the role's data types, re-exported
+
 __all__ = [
     "FRAME_DTYPE",
     "FRAME_SIZE",
@@ -75,35 +77,6 @@ def valid_mask(status: np.ndarray) -> np.ndarray:
     st = np.asarray(status, dtype=np.uint8)
     return ((st[:, None] >> _STATUS_BITS[None, :]) & 1).astype(bool)
 
-
-@dataclass(frozen=True)
-class ImuAxes:
-    """Which axes a unit has, learned from its status bits: six booleans in AXIS_NAMES order."""
-
-    present: tuple[bool, bool, bool, bool, bool, bool]
-
-    @classmethod
-    def from_status(cls, status: np.ndarray) -> ImuAxes:
-        """Axes whose valid bit is set in at least half of the given frames."""
-        mask = valid_mask(status)
-        return cls(tuple(bool(2 * c >= len(mask)) for c in mask.sum(axis=0)))  # type: ignore[arg-type]
-
-    @property
-    def gyro(self) -> str:
-        """The gyro axes, e.g. "y" or "xyz"."""
-        return "".join(a for a, p in zip("xyz", self.present[:3], strict=True) if p)
-
-    @property
-    def accel(self) -> str:
-        """The accelerometer axes, e.g. "" or "xyz"."""
-        return "".join(a for a, p in zip("xyz", self.present[3:], strict=True) if p)
-
-    def describe(self) -> str:
-        """"gyro y only", "gyro x y z, no accel", "gyro x y z, accel x y z"."""
-        g = " ".join(self.gyro) or "none"
-        if not self.accel:
-            return f"gyro {g} only" if len(self.gyro) == 1 else f"gyro {g}, no accel"
-        return f"gyro {g}, accel {' '.join(self.accel)}"
 
 # --------------------------------------------------------------------------------------------
 # CRC-32/MPEG-2: poly 0x04C11DB7, init 0xFFFFFFFF, no reflection, no final xor.
@@ -412,7 +385,7 @@ class KvhDecoder:
             seen = np.concatenate(self._learn_status)
             if len(seen) < AXES_LEARN_FRAMES:
                 return
-            self.axes = ImuAxes.from_status(seen[:AXES_LEARN_FRAMES])
+            self.axes = ImuAxes.from_valid(valid_mask(seen[:AXES_LEARN_FRAMES]))
             self._learn_status = []
             status = seen
         cleared = (~valid_mask(status)).sum(axis=0)
@@ -422,38 +395,6 @@ class KvhDecoder:
 
 
 # -- decoded samples in edge units (the live driver and replay share these) --------------------
-@dataclass(frozen=True)
-class ImuBlock:
-    """Consecutive decoded samples. `lost_samples` counts gaps inside the block.
-
-    A field whose status bit is cleared (PROTOCOLS.md §2: not valid, or an axis the unit does not
-    have) is NaN in `gyro_rad_s` / `accel_g`, so it is excluded from every mean, never averaged."""
-
-    sample_index: np.ndarray  # int64 [n], device sample count
-    gyro_rad_s: np.ndarray  # float64 [n, 3], NaN where not valid
-    accel_g: np.ndarray  # float64 [n, 3], NaN where not valid
-    status: np.ndarray  # uint8 [n]
-    temperature_c: np.ndarray  # float64 [n]
-    lost_samples: int
-    rate_hz: float
-    unknown_gaps: tuple[int, ...] = ()
-    """Index of the first sample after each gap whose length is unknown (KvhDecoder._index): the
-    time of every later sample is known only up to 128·k samples."""
-
-    @property
-    def valid(self) -> np.ndarray:
-        """bool [n, 6]: each axis's valid bit (gyro x y z, accel x y z)."""
-        return valid_mask(self.status)
-
-    @property
-    def time_s(self) -> np.ndarray:
-        """Device time of each sample: sample_index / rate_hz."""
-        return self.sample_index / self.rate_hz
-
-    def __len__(self) -> int:
-        return len(self.sample_index)
-
-
 def frames_to_block(sample_index: np.ndarray, frames: np.ndarray, rate_hz: float, rot_format: str,
                     rot_units: str) -> ImuBlock:
     """Decoded format-A frames → an ImuBlock in rad/s and g (live and replay use this one)."""

@@ -522,6 +522,13 @@ class Accelerometer:
         with self._lock:
             return replace(self._decoder.stats)
 
+    def flush_log(self) -> None:
+        """Push the CAN log to disk (python-can's writer buffers; the notifier thread writes to it)."""
+        with self._lock:
+            handle = getattr(self._logger, "file", None)
+            if handle is not None and not handle.closed:
+                handle.flush()
+
     # -- lifetime ----------------------------------------------------------------------------
     def close(self) -> None:
         """Stop the notifier, shut the bus down (if the driver opened it) and close the log."""

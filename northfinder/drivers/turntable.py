@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Protocol, TextIO
 
 from northfinder.codecs import smc100
+from northfinder.devices.stage import StageFault
 from northfinder.errors import DeviceError
 from northfinder.transport import SerialTransport
 
@@ -33,7 +34,7 @@ __all__ = ["StageError", "StageStatus", "Turntable"]
 DEVICE = "turntable"
 
 
-class StageError(DeviceError):
+class StageError(StageFault):
     """The stage refused a command or is in a state that stops the run.
 
     `state` (int) and `state_name`, `letter` (TE, '@' none) and `errors` (positioner bits)
@@ -45,6 +46,7 @@ class StageError(DeviceError):
         self.state = state
         self.state_name = smc100.state_name(state) if state is not None else None
         self.letter = letter
+        self.reason = f"TE '{letter}' ({smc100.TE_MEANINGS.get(letter, 'unknown')})" if letter else None
         self.errors = errors
         parts = [what]
         if state is not None:

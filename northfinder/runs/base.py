@@ -22,6 +22,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from northfinder.devices import registry
+from northfinder.devices.imu import ImuBlock
 from northfinder.errors import DeviceError, InputError, RunAborted
 from northfinder.rundir import CONFIG, EVENTS, IMU_RAW, RESULT, RunDir
 from northfinder.stopflag import StopFlag
@@ -140,8 +142,6 @@ def default_out(kind: str) -> Path:
 # ---------------------------------------------------------------------------------------------
 def select_samples(block: Any, first_index: int, last_index: int) -> Any:
     """The samples of an ImuBlock with first_index ≤ index ≤ last_index (what the live run read)."""
-    from northfinder.drivers.imu import ImuBlock
-
     sel = (block.sample_index >= first_index) & (block.sample_index <= last_index)
     idx = block.sample_index[sel]
     lost = int(idx[-1] - idx[0] + 1 - len(idx)) if len(idx) else 0
@@ -184,8 +184,6 @@ def before_unknown_gap(block: Any) -> tuple[Any, dict[str, Any] | None]:
 
 def concat_blocks(blocks: list[Any], rate_hz: float) -> Any:
     """One ImuBlock of the window from the blocks read (gaps stay gaps in sample_index)."""
-    from northfinder.drivers.imu import ImuBlock
-
     return ImuBlock(
         np.concatenate([b.sample_index for b in blocks]),
         np.concatenate([b.gyro_rad_s for b in blocks]),
@@ -227,8 +225,8 @@ def read_imu_window(
 
 
 def imu_start(port: str, imu: Any) -> dict[str, Any]:
-    """The start event's `imu`: what the decoder must know to replay imu.raw."""
-    return {"port": port, "rate_hz": imu.rate_hz, "rot_format": imu.rot_format, "rot_units": imu.rot_units}
+    """The start event's `imu`: what the model's decoder must know to replay imu.raw, and the model."""
+    return {"port": port, **imu.recorded_settings(), "model": imu.model_name}
 
 
 def start_event(kind: str, duration_s: float, imu_port: str, imu: Any, **more: Any) -> dict[str, Any]:
@@ -313,11 +311,9 @@ def run_events(rd: RunDir, kind: str, mode: str) -> tuple[dict[str, Any], dict[s
 
 def imu_window_from_raw(rd: RunDir, start: dict[str, Any], end: dict[str, Any]) -> Any:
     """The window's IMU samples decoded from imu.raw alone (the pure decoder: bit-identical)."""
-    from northfinder.drivers.imu import decode_imu_stream
-
     imu_cfg = start["imu"]
     raw = rd.file(IMU_RAW).read_bytes() if rd.file(IMU_RAW).exists() else b""
-    block, _ = decode_imu_stream(raw, imu_cfg["rate_hz"], imu_cfg["rot_format"], imu_cfg["rot_units"])
+    block, _ = registry.decoder_for("imu", imu_cfg.get("model")).decode_log(raw, imu_cfg)
     return select_samples(block, int(end["imu"]["first_index"]), int(end["imu"]["last_index"]))
 
 

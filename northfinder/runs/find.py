@@ -25,9 +25,10 @@ from typing import Any
 import numpy as np
 
 from northfinder import config as bench
-from northfinder.codecs.canopen import decode_accel_frames
-from northfinder.codecs.kvh import decode_imu_stream
 from northfinder.constants import wrap_deg_180
+from northfinder.devices import registry
+from northfinder.devices.imu import InertialStream
+from northfinder.devices.tilt import TiltSensor
 from northfinder.errors import InputError, RunAborted, RunDamaged
 from northfinder.estimators.heading import MAX_ABS_LATITUDE_DEG, HeadingSolution
 from northfinder.estimators.means import PositionMeans, position_means
@@ -36,7 +37,7 @@ from northfinder.history import record_or_warn
 from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session_file
 from northfinder.runs.base import ProgressView, RunContext, default_out, guard, now_utc
 from northfinder.runs.base import discard_unstarted as base_discard_unstarted
-from northfinder.sequencer import Interrupted, RunFailed, Sequencer
+from northfinder.sequencer import Interrupted, RunFailed, Sequencer, SequencerLimits
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 from northfinder.stopflag import StopFlag
 
@@ -195,24 +196,16 @@ def open_bench(
     `can_kwargs` are extra python-can bus arguments (e.g. `sleep_after_open` for an slcan
     adapter that is a pty and needs no 2 s reset wait); `[accelerometer] bus_options` win.
     """
-    from northfinder.drivers.accelerometer import Accelerometer
-    from northfinder.drivers.imu import Imu
-    from northfinder.drivers.turntable import Turntable
-
     a, t = cfg.accelerometer, cfg.turntable
     with contextlib.ExitStack() as stack:
-        tt = stack.enter_context(guard("turntable", t.port, lambda: Turntable(
-            t.port, address=t.address, baudrate=t.baudrate, timeout_s=5.0,
-            transcript=rundir.transcript_path if rundir else None)))
-        tt.status()  # fail fast, naming the port, if something else than an SMC100 answers there
-        imu = stack.enter_context(guard("imu", cfg.imu.port, lambda: Imu(
-            cfg.imu.port, baudrate=cfg.imu.baudrate, timeout_s=5.0,
-            raw_log=rundir.imu_raw_path if rundir else None, link_timeout_s=cfg.imu.link_timeout_s)))
-        bus_options = {**(can_kwargs or {}), **a.bus_options}
-        acc = stack.enter_context(guard("accelerometer", a.channel, lambda: Accelerometer(
-            a.interface, a.channel, bitrate=a.bitrate, node_id=a.node_id, rate_hz=a.rate_hz or 100.0,
-            eds_path=bench.accel_eds_path(cfg), log_path=rundir.can_log_path if rundir else None,
-            bus_options=bus_options or None)))
+        tt = stack.enter_context(guard("turntable", t.port, lambda: registry.open_device(
+            "turntable", t, rundir.transcript_path if rundir else None)))
+        tt.state()  # fail fast, naming the port, if something else than the model answers there
+        imu = stack.enter_context(guard("imu", cfg.imu.port, lambda: registry.open_device(
+            "imu", cfg.imu, rundir.imu_raw_path if rundir else None)))
+        acc = stack.enter_context(guard("accelerometer", a.channel, lambda: registry.open_device(
+            "accelerometer", a, rundir.can_log_path if rundir else None, can_kwargs=can_kwargs or {},
+            eds_path=bench.accel_eds_path(cfg))))
         yield tt, imu, acc
 
 
@@ -251,19 +244,15 @@ def _sim_info(settings: SimSettings | None) -> dict[str, Any] | None:
             "time_scale": settings.time_scale, "faults": list(settings.faults)}
 
 
-def _configure(cfg: bench.BenchConfig, imu: Any, acc: Any, rundir: RunDir) -> dict[str, Any]:
-    """Read the IMU's rate and gyro format back (the decoder must know them), set the rate if the
-    config asks another, wait for the node, configure it over SDO; the node's identity."""
-    imu.configure()
-    if float(cfg.imu.rate_hz) != imu.rate_hz:
-        imu.configure(rate_hz=cfg.imu.rate_hz)
-    acc.wait_heartbeat()
-    a = cfg.accelerometer  # SDO: identity, mapping, rate, heartbeat time (each step an event)
-    return acc.configure(rate_hz=a.rate_hz or None, heartbeat_ms=a.heartbeat_ms,
-                         rate_object=a.rate_object, log=rundir.log_event)
+def _configure(cfg: bench.BenchConfig, imu: InertialStream, acc: TiltSensor,
+               rundir: RunDir) -> dict[str, Any]:
+    """Read the IMU's settings back (the decoder must know them), set the rate if the config asks
+    another; configure the tilt sensor (each step an event); what the start event records of it."""
+    imu.configure_for_run(cfg.imu.rate_hz)
+    return acc.configure_for_run(cfg.accelerometer, rundir.log_event)
 
 
-def _start_event(ctx: RunContext, imu: Any, acc: Any, acc_info: dict[str, Any],
+def _start_event(ctx: RunContext, imu: InertialStream, acc_info: dict[str, Any],
                  sim_info: dict[str, Any] | None) -> dict[str, Any]:
     """The session's start event: what replay needs to decode its logs, and the plan."""
     cfg = ctx.cfg
@@ -278,16 +267,9 @@ def _start_event(ctx: RunContext, imu: Any, acc: Any, acc_info: dict[str, Any],
         "positions_planned": cfg.run.positions,
         "dwell_s": cfg.run.dwell_s,
         "plan": cfg.run.plan,
-        "imu": {"port": cfg.imu.port, "rate_hz": imu.rate_hz, "rot_format": imu.rot_format,
-                "rot_units": imu.rot_units},
-        "accelerometer": {
-            "interface": cfg.accelerometer.interface,
-            "channel": cfg.accelerometer.channel,
-            "node_id": cfg.accelerometer.node_id,
-            "rate_hz": acc.rate_hz,
-            "identity": acc_info["identity"],
-            "layout": acc.layout.to_dict(),
-        },
+        "turntable": {"model": registry.model_of(cfg.turntable, "turntable")},
+        "imu": {"port": cfg.imu.port, **imu.recorded_settings(), "model": registry.model_of(cfg.imu, "imu")},
+        "accelerometer": {**acc_info, "model": registry.model_of(cfg.accelerometer, "accelerometer")},
         "truth": ctx.truth,
         **(ctx.start_extra or {}),
     }
@@ -307,10 +289,10 @@ def _sequence(ctx: RunContext, devices: tuple[Any, Any, Any], stop: StopFlag, pr
             if extra is not None:
                 extra(p)
 
-        seq = Sequencer(tt, imu, acc, cfg.run, allow_home=cfg.turntable.allow_home, rundir=ctx.rundir,
-                        on_progress=on_progress, stop_flag=stop, accel_rate_hz=acc.rate_hz,
-                        skip=skip or set(), stage_speed_deg_s=cfg.turntable.speed_deg_s,
-                        stage_settle_s=cfg.turntable.settle_s, **seq_kwargs)
+        limits = SequencerLimits.from_options(stage_speed_deg_s=cfg.turntable.speed_deg_s,
+                                              stage_settle_s=cfg.turntable.settle_s, **seq_kwargs)
+        seq = Sequencer(tt, imu, acc, cfg.run, limits, allow_home=cfg.turntable.allow_home, rundir=ctx.rundir,
+                        on_progress=on_progress, stop_flag=stop, skip=skip or set())
         try:
             return previous + seq.run()
         except Interrupted as intr:
@@ -349,7 +331,7 @@ def measure(
     stop = StopFlag()
     with stop.installed(), open_bench(cfg, rundir, can_kwargs) as (tt, imu, acc):
         acc_info = _configure(cfg, imu, acc, rundir)
-        ctx.event(_start_event(ctx, imu, acc, acc_info, sim_info))
+        ctx.event(_start_event(ctx, imu, acc_info, sim_info))
         positions = _sequence(ctx, (tt, imu, acc), stop, list(previous or []), skip, seq_kwargs)
     result = _result(ctx, positions, complete=True)
     ctx.finish(result)
@@ -702,21 +684,15 @@ class ReplayOutcome:
 
 
 def _decode_session(rd: RunDir, session: int, start: dict[str, Any]) -> tuple[Any, Any]:
-    """One session's IMU samples and accelerometer samples, decoded from its own raw logs through
-    the codecs (python-can only reads the CAN log file)."""
-    import can
-
+    """One session's IMU samples and accelerometer samples, decoded from its own raw logs by the
+    decoders of the models the run recorded (registry.decoder_for)."""
     imu_cfg = start["imu"]
     raw_path = rd.file(session_file(IMU_RAW, session))
     raw = raw_path.read_bytes() if raw_path.exists() else b""
-    block, _ = decode_imu_stream(raw, imu_cfg["rate_hz"], imu_cfg["rot_format"], imu_cfg["rot_units"])
-    can_path = rd.file(session_file(CAN_LOG, session))
-    accel_block = None
-    if can_path.exists():
-        frames = ((m.arbitration_id, bytes(m.data), m.timestamp, m.is_extended_id, m.is_remote_frame)
-                  for m in can.LogReader(str(can_path)) if m.is_rx and not m.is_error_frame)
-        accel_block, _ = decode_accel_frames(frames, node_id=start["accelerometer"]["node_id"],
-                                             layout=start["accelerometer"].get("layout"))
+    block, _ = registry.decoder_for("imu", imu_cfg.get("model")).decode_log(raw, imu_cfg)
+    acc_cfg = start["accelerometer"]
+    accel_block = registry.decoder_for("accelerometer", acc_cfg.get("model")).decode_log(
+        rd.file(session_file(CAN_LOG, session)), acc_cfg)
     return block, accel_block
 
 

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from northfinder.codecs.kvh import decode_imu_stream
 from northfinder.constants import DPH
+from northfinder.devices import registry
 from northfinder.errors import InputError
 from northfinder.estimators.heading import HeadingSolution, heading_with_gyro_fit
 from northfinder.estimators.motion_fit import RUN_TERMS, fit_motion_screened, place_samples
@@ -43,8 +43,8 @@ def motion_samples(rd: RunDir, events: Sequence[dict[str, Any]], block: Any = No
         raw_path = rd.file(IMU_RAW)
         if not raw_path.exists():
             return None, f"no {IMU_RAW}"
-        block, _ = decode_imu_stream(raw_path.read_bytes(), imu_cfg["rate_hz"], imu_cfg["rot_format"],
-                                     imu_cfg["rot_units"])
+        decoder = registry.decoder_for("imu", imu_cfg.get("model"))
+        block, _ = decoder.decode_log(raw_path.read_bytes(), imu_cfg)
     gyro = np.asarray(block.gyro_rad_s, dtype=float) / DPH
     if gyro.size == 0 or not np.any(np.isfinite(gyro[:, 2])):
         return None, "no gyro z: the table angle between dwells is unknown"

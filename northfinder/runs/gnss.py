@@ -31,7 +31,6 @@ Time alignment (IMU sample index ↔ GNSS time), docs/result-schema-align.md "##
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 from typing import Any
 
@@ -40,10 +39,10 @@ import numpy as np
 from northfinder.align.gnss_ins import GnssAlignConfig, GnssAlignResult, GnssSeries, ImuSeries, align_gnss
 from northfinder.align.small_angle import align_gnss_small_angle
 from northfinder.align.time_offset import NoTimeInformation, estimate_time_offset
-from northfinder.codecs.kvh import KvhDecoder
-from northfinder.codecs.nmea import GnssFix, LocalEnu, checksum, fixes_to_arrays
 from northfinder.config import GnssAlignmentConfig
 from northfinder.constants import wrap_deg_180
+from northfinder.devices import registry
+from northfinder.devices.gnss import GnssFix, LocalEnu, fixes_to_arrays
 from northfinder.errors import InputError
 from northfinder.report import report_axes, save_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
@@ -92,26 +91,6 @@ def _chunks(raw: bytes, total: np.ndarray) -> list[bytes]:
     return [raw[a:b] for a, b in zip(starts.tolist(), ends.tolist(), strict=True)]
 
 
-_GGA = re.compile(rb"\$(..GGA,(\d\d)(\d\d)(\d\d(?:\.\d+)?),[^*\r\n$]*)\*([0-9A-Fa-f]{2})")
-
-
-def gga_ends(nmea_raw: bytes, utc_ref_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """(byte offset just past each good GGA, its UTC − utc_ref_s): the first sentence of each epoch.
-
-    GGA carries the time of day only: the day comes from `utc_ref_s` (the nearest one), so an
-    epoch is placed within ±12 h of the reference. Checksums are verified (a corrupted time
-    would fake an early arrival)."""
-    ends, times = [], []
-    ref_sod = utc_ref_s % 86400.0
-    for m in _GGA.finditer(nmea_raw):
-        if checksum(m.group(1)) != int(m.group(5), 16):
-            continue
-        sod = int(m.group(2)) * 3600 + int(m.group(3)) * 60 + float(m.group(4))
-        ends.append(m.end())
-        times.append((sod - ref_sod + 43200.0) % 86400.0 - 43200.0)
-    return np.asarray(ends, dtype=np.int64), np.asarray(times, dtype=float)
-
-
 def host_offsets(
     imu_raw: bytes,
     imu_stamps,
@@ -122,6 +101,8 @@ def host_offsets(
     time_scale: float = 1.0,
     imu_last_index: int | None = None,
     gnss_last_s: float | None = None,
+    imu_model: str | None = None,
+    gnss_model: str | None = None,
 ) -> dict[str, Any]:
     """IMU index 0's start and GNSS time zero on one clock, from host receive stamps (lower envelope).
 
@@ -130,22 +111,21 @@ def host_offsets(
     (a simulator running K× faster) so the offsets are in device seconds. Returns t0_s =
     off_imu − off_gnss, the start of sample 0 in GNSS time, and the median arrival delays (how
     much the minimum had to choose from). Only the window's samples (≤ imu_last_index) and
-    epochs (≤ gnss_last_s) count.
+    epochs (≤ gnss_last_s) count. The logs are decoded by the recorded models' decoders.
     """
     h_i, b_i = imu_stamps
     h_g, b_g = gnss_stamps
     if len(h_i) == 0 or len(h_g) == 0:
         raise InputError("host time alignment needs the receive stamps imu.rx and gnss.rx; they are empty")
-    dec = KvhDecoder()
     imu_d = []
-    for h, chunk in zip(h_i, _chunks(imu_raw, b_i), strict=True):
-        out = dec.feed(chunk)
-        if len(out):
-            last = int(out.sample_index[-1])
+    chunks = list(_chunks(imu_raw, b_i))
+    for h, index in zip(h_i, registry.decoder_for("imu", imu_model).index_chunks(chunks), strict=True):
+        if len(index):
+            last = int(index[-1])
             if imu_last_index is not None and last > imu_last_index:
                 break
             imu_d.append(h * time_scale - (last + 1) / rate_hz)
-    ends, u = gga_ends(nmea_raw, utc_ref_s)
+    ends, u = registry.decoder_for("gnss", gnss_model).epoch_ends(nmea_raw, utc_ref_s)
     if gnss_last_s is not None:
         keep = u <= gnss_last_s + 1e-6
         ends, u = ends[keep], u[keep]
@@ -429,11 +409,9 @@ def compute_gnss_result(
 # ---------------------------------------------------------------------------------------------
 def window_from_logs(rd: RunDir, start: dict[str, Any], end: dict[str, Any]) -> tuple[Any, list[GnssFix]]:
     """The IMU samples and the fixes of the window, decoded from imu.raw and gnss.nmea alone."""
-    from northfinder.drivers.gnss import decode_nmea_log
-
     block = base.imu_window_from_raw(rd, start, end)
     nmea = rd.file(GNSS_NMEA).read_bytes() if rd.file(GNSS_NMEA).exists() else b""
-    fixes, _ = decode_nmea_log(nmea)
+    fixes, _ = registry.decoder_for("gnss", start.get("gnss", {}).get("model")).decode_log(nmea)
     return block, fixes[: int(end["gnss"]["fixes"])]
 
 
@@ -452,6 +430,8 @@ def _host_estimate(
             float(start.get("time_scale", 1.0)),
             int(end["imu"]["last_index"]),
             gnss_last_s,
+            imu_model=start["imu"].get("model"),
+            gnss_model=start.get("gnss", {}).get("model"),
         )
     except (InputError, FileNotFoundError):
         return None

@@ -24,6 +24,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from northfinder.devices import registry
 from northfinder.errors import DeviceError
 from northfinder.rundir import CONFIG, RunDir
 from northfinder.runs import base
@@ -129,16 +130,13 @@ class Window:
     stop: StopFlag
 
 
-def _open_gnss(rd: RunDir, port: str, baudrate: int) -> contextlib.AbstractContextManager[Any]:
+def _open_gnss(rd: RunDir, port: str, baudrate: int, model: str) -> contextlib.AbstractContextManager[Any]:
     """The NMEA receiver with its raw log (gnss.nmea) and host receive stamps (gnss.rx)."""
-    from northfinder.drivers.gnss import Gnss
-
     return base.guard(
         "gnss",
         port,
-        lambda: Gnss(
-            port,
-            timeout_s=5.0,
+        lambda: registry.open_device(
+            "gnss", {"model": model, "port": port, "baudrate": baudrate}, None,
             transport=_stamped("gnss", port, baudrate, rd.file(gr.GNSS_NMEA), rd.file(gr.GNSS_RX)),
         ),
     )
@@ -215,6 +213,8 @@ def acquire(
     filter_settings: dict[str, Any],
     imu_baudrate: int = 921600,
     gnss_baudrate: int = 115200,
+    imu_model: str = "",
+    gnss_model: str = "",
     configure_imu: bool = False,
     simulate: dict[str, Any] | None = None,
     gnss_start_utc: str | None = None,
@@ -225,8 +225,6 @@ def acquire(
 ) -> Window:
     """Read both devices for `duration_s` device seconds; the raw logs, stamps and events are saved
     in the run directory. A signal ends the reading early (`Window.stop` says which)."""
-    from northfinder.drivers.imu import Imu
-
     rd.write_json(CONFIG, {"kind": gr.KIND, "simulate": simulate, "argv": sys.argv, **(config_extra or {})})
     stop = StopFlag()
     blocks: list[Any] = []
@@ -236,8 +234,8 @@ def acquire(
             base.guard(
                 "imu",
                 imu_port,
-                lambda: Imu(
-                    imu_port,
+                lambda: registry.open_device(
+                    "imu", {"model": imu_model, "port": imu_port}, None,
                     rate_hz=imu_rate_hz,
                     rot_format=rot_format,
                     rot_units=rot_units,
@@ -247,14 +245,14 @@ def acquire(
             )
         )
         if configure_imu:
-            imu.configure()  # read the rate and gyro format back: the decoder must know them
-        gnss = stack.enter_context(_open_gnss(rd, gnss_port, gnss_baudrate))
+            imu.configure_for_run(None)  # read the rate and gyro format back: the decoder must know them
+        gnss = stack.enter_context(_open_gnss(rd, gnss_port, gnss_baudrate, gnss_model))
         start = base.start_event(
             gr.KIND,
             duration_s,
             imu_port,
             imu,
-            gnss={"port": gnss_port},
+            gnss={"port": gnss_port, "model": gnss.model_name},
             filter=filter_settings,
             simulate=simulate,
             time_scale=time_scale,

@@ -41,6 +41,7 @@ from northfinder.align.swaying import (
 )
 from northfinder.config import SwayingConfig
 from northfinder.constants import DEG, STANDARD_GRAVITY_M_S2, wrap_deg_180
+from northfinder.devices import registry
 from northfinder.errors import DeviceError, InputError
 from northfinder.report import report_axes, save_report
 from northfinder.rundir import CONFIG, IMU_RAW, RunDir, jsonable
@@ -218,6 +219,7 @@ def acquire(
     duration_s: float,
     settings: dict[str, Any],
     baudrate: int = 921600,
+    imu_model: str = "",
     configure_imu: bool = False,
     progress: base.WindowProgress | None = None,
     config_extra: dict[str, Any] | None = None,
@@ -226,8 +228,6 @@ def acquire(
     go to imu.raw as they arrive, the window's index range to events.jsonl. A signal ends the
     reading early (`Window.stop` says which). `settings`: what the estimator needs (latitude,
     method, sway period, simulate) — stored in the start event so replay finds it."""
-    from northfinder.drivers.imu import Imu
-
     rd.write_json(CONFIG, {"kind": KIND, "argv": sys.argv, **settings, **(config_extra or {})})
     stop = StopFlag()
     blocks: list[Any] = []
@@ -235,10 +235,11 @@ def acquire(
         with base.guard(
             "imu",
             imu_port,
-            lambda: Imu(imu_port, baudrate=baudrate, raw_log=rd.imu_raw_path, rate_hz=rate_hz, timeout_s=5.0),
+            lambda: registry.open_device("imu", {"model": imu_model, "port": imu_port, "baudrate": baudrate},
+                                         rd.imu_raw_path, rate_hz=rate_hz),
         ) as imu:
             if configure_imu:
-                imu.configure()  # read rate and gyro format back: the decoder must know them
+                imu.configure_for_run(None)  # read rate and gyro format back: the decoder must know them
             start = base.start_event(KIND, duration_s, imu_port, imu, **settings)
             rd.log_event(start)
             with base.window_view(progress, duration_s) as view:
@@ -267,14 +268,10 @@ def acquire(
 # ---------------------------------------------------------------------------------------------
 # The simulator's truth log (docs/simulator.md)
 # ---------------------------------------------------------------------------------------------
-def first_sequence(raw: bytes) -> int:
-    """Sequence number of the first format-A frame decoded from a raw IMU log."""
-    from northfinder.codecs.kvh import KvhDecoder
-
-    out = KvhDecoder().feed(raw[: 1 << 16])
-    if not len(out):
-        raise InputError("imu.raw holds no format-A frame")
-    return int(out.frames["sequence"][0])
+def first_counter(raw: bytes, model: str | None) -> tuple[int, int]:
+    """The model's own counter of the first sample of a raw IMU log, and the counter's period."""
+    decoder = registry.decoder_for("imu", model)
+    return decoder.first_counter(raw), int(decoder.counter_period)
 
 
 def truth_at_end(rd: RunDir, start: dict[str, Any], first_index: int, last_index: int) -> dict[str, Any]:
@@ -293,8 +290,8 @@ def truth_at_end(rd: RunDir, start: dict[str, Any], first_index: int, last_index
         raise InputError(
             f"{rd.path}: the truth log's IMU rate {c['rate_hz']:g} Hz is not the run's {rate:g} Hz"
         )
-    s0 = first_sequence(rd.file(IMU_RAW).read_bytes())
-    k_first = int(c["k0"]) + (s0 - int(c["sequence0"])) % 128
+    s0, period = first_counter(rd.file(IMU_RAW).read_bytes(), start["imu"].get("model"))
+    k_first = int(c["k0"]) + (s0 - int(c["sequence0"])) % period
     t_of_end = lambda u: float(c["t0_device_s"]) + (k_first - int(c["k0"]) + u) / rate  # noqa: E731
     t_end = t_of_end(last_index)
     t_start = t_of_end(first_index - 1)

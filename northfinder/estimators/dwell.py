@@ -1,0 +1,133 @@
+"""Whether a dwell is good enough to keep: gaps and lost samples (device counters), samples flagged not
+valid, and disturbances (a window mean far off the dwell's level). Pure: the sequencer hands in the
+dwell's samples and acts on the answer (measure the position again).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from northfinder.constants import DPH
+
+DISTURBANCE_Z = 7.0
+"""A window mean this many of its own white-noise σ from the dwell's median is a disturbance:
+P(|z| > 7) ≈ 3e-12 per window, so a clean dwell of thousands of windows never trips it."""
+ACCEL_QUANTUM_G = 1e-6
+"""The accelerometer's step (1 µg): its per-sample σ is at least step/√12."""
+
+
+@dataclass(frozen=True)
+class DwellLimits:
+    """When a dwell is measured again: an IMU gap longer than `imu_max_gap_s` (device time), more
+    than `max_lost_fraction` of the IMU samples lost (or flagged not valid on a gyro axis), more than
+    `accel_max_lost_fraction` of the accelerometer's lost, or a disturbance in windows of
+    `disturbance_window_s` (twice that for the accelerometer)."""
+
+    imu_max_gap_s: float = 0.1
+    max_lost_fraction: float = 0.05
+    accel_max_lost_fraction: float = 0.2
+    disturbance_window_s: float = 0.1
+
+
+def disturbance_z(samples: np.ndarray, window: int, floor: float = 0.0) -> tuple[float, int]:
+    """Largest |window mean − median of the window means| in units of the white-noise σ of a window
+    mean, over every column; returns (z, window index).
+
+    A robust step/bump test (not from the papers: a plain outlier test on block means). At rest a
+    dwell's samples are white noise about a constant, so block means of `window` samples scatter
+    with σ/√window, where the per-sample σ is estimated from first differences (std(Δx)/√2 for
+    white noise), robustly by the median over blocks so that a bump inflates nothing. `floor` is
+    the smallest per-sample σ (a quantized channel's step/√12).
+    """
+    x = np.asarray(samples, dtype=np.float64)
+    if x.ndim == 1:
+        x = x[:, None]
+    n_win = x.shape[0] // int(window)
+    if n_win < 3:
+        return 0.0, -1
+    blocks = x[: n_win * window].reshape(n_win, window, x.shape[1])
+    means = blocks.mean(axis=1)  # [n_win, k]
+    sigma = np.median(np.std(np.diff(blocks, axis=1), axis=1), axis=0) / np.sqrt(2.0)  # [k]
+    sigma = np.maximum(sigma, floor)
+    z = np.abs(means - np.median(means, axis=0)) / (np.maximum(sigma, 1e-300) / np.sqrt(window))
+    j = int(np.argmax(z.max(axis=1)))
+    return float(z[j].max()), j
+
+
+def disturbance_valid(samples: np.ndarray, window: int) -> tuple[float, int]:
+    """:func:`disturbance_z` over the columns that have valid samples, each on its own valid samples
+    (NaN = flagged not valid, or an axis the unit lacks); the window index is of that column."""
+    best = (0.0, -1)
+    for col in np.asarray(samples, dtype=np.float64).T:
+        ok = col[np.isfinite(col)]
+        if ok.size:
+            best = max(best, disturbance_z(ok, window))
+    return best
+
+
+def invalid_problems(gyro_dph: np.ndarray, n: int, gyro_axes: str, max_lost_fraction: float) -> list[str]:
+    """Too many samples flagged not valid on a gyro axis the fit needs: measured again like a dwell
+    that lost them."""
+    out = []
+    for a in gyro_axes:
+        bad = int(np.count_nonzero(np.isnan(gyro_dph[:, "xyz".index(a)])))
+        if bad > max_lost_fraction * n:
+            out.append(f"imu gyro {a}: {bad} of {n} samples flagged not valid (status bit cleared)")
+    return out
+
+
+def _counter_problems(idx: np.ndarray, stalls: list[int], rate: float,
+                      limits: DwellLimits) -> list[str]:
+    """Gaps and lost samples, from the device counters."""
+    out = []
+    gap = int(np.max(np.diff(idx))) - 1 if idx.size > 1 else 0
+    lost = int(idx[-1] - idx[0] + 1 - idx.size)
+    inside = [k for k in stalls if idx[0] < k <= idx[-1]]
+    if inside:
+        out.append(
+            f"imu stream paused (silent) inside the dwell at sample {inside[0]}: a timeout or bytes lost "
+            "on the line, its length unknown (the 7-bit sequence wraps)"
+        )
+    elif gap > limits.imu_max_gap_s * rate:
+        out.append(f"imu gap of {gap} samples ({gap / rate:.3f} s device time) inside the dwell")
+    elif lost > limits.max_lost_fraction * idx.size:
+        out.append(f"imu lost {lost} of {lost + idx.size} samples")
+    return out
+
+
+def dwell_problems(blocks: list[Any], accel_block: Any, *, imu_rate_hz: float, accel_rate_hz: float,
+                   gyro_axes: str, stalls: list[int], limits: DwellLimits) -> list[str]:
+    """Why a dwell must be measured again (empty if it is good): a gap or too many lost samples
+    (device sample counters; `stalls`: first index after each pause of unknown length), samples
+    flagged not valid, or a disturbance in the gyro/accelerometer statistics. `blocks`: the IMU's
+    ImuBlocks, `accel_block` the tilt sensor's AccelBlock."""
+    rate = float(imu_rate_hz)
+    idx = np.concatenate([np.asarray(b.sample_index) for b in blocks])
+    out = _counter_problems(idx, stalls, rate, limits)
+    gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0) / DPH
+    imu_acc = np.concatenate([np.asarray(b.accel_g) for b in blocks], axis=0)
+    out += invalid_problems(gyro, idx.size, gyro_axes, limits.max_lost_fraction)
+    counter = np.asarray(accel_block.counter)
+    a_lost = int(accel_block.lost_samples)
+    if a_lost > limits.accel_max_lost_fraction * max(counter.size, 1):
+        out.append(f"accelerometer lost {a_lost} of {a_lost + counter.size} samples (too few)")
+    if out:
+        return out
+    w = max(10, int(round(limits.disturbance_window_s * rate)))
+    z, j = disturbance_valid(np.hstack([gyro, imu_acc]), w)
+    wa = max(5, int(round(2.0 * limits.disturbance_window_s * accel_rate_hz)))
+    za, ja = disturbance_z(np.asarray(accel_block.accel_g), wa, floor=ACCEL_QUANTUM_G / np.sqrt(12.0))
+    if z > DISTURBANCE_Z:
+        out.append(
+            f"disturbance: IMU window {j} ({j * w / rate:.2f} s into the dwell) is {z:.1f} σ "
+            "off the dwell's level"
+        )
+    if za > DISTURBANCE_Z:
+        out.append(
+            f"disturbance: accelerometer window {ja} ({ja * wa / accel_rate_hz:.2f} s into "
+            f"its dwell) is {za:.1f} σ off"
+        )
+    return out
