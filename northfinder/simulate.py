@@ -56,6 +56,10 @@ class SimSettings:
     time_scale: float = 20.0
     faults: Sequence[str] = field(default_factory=tuple)
     config: str | None = None
+    stage_model: str = "smc100"
+    imu_model: str = "kvh"
+    tilt_model: str = "nf-accel"
+    """The simulated devices' models (firmware-sim --stage/--imu/--tilt; bench.toml's `model =` names)."""
 
     def argv(self) -> list[str]:
         """The firmware-sim command line for these settings."""
@@ -69,6 +73,9 @@ class SimSettings:
                 "--seed": int(self.seed),
                 "--time-scale": float(self.time_scale),
                 "--config": self.config or None,
+                "--stage": self.stage_model if self.stage_model != "smc100" else None,
+                "--imu": self.imu_model if self.imu_model != "kvh" else None,
+                "--tilt": self.tilt_model if self.tilt_model != "nf-accel" else None,
             },
             self.faults,
         )

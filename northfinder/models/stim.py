@@ -113,7 +113,10 @@ class StimStream:
         self.size = self.decoder.size
         self._last: tuple[int, int, int] | None = None  # (index, counter, byte offset)
         self.lost_samples = 0
+        self.gaps = 0
         self.unknown_gaps: list[int] = []
+        self.invalid = np.zeros(6, dtype=np.int64)
+        """Samples flagged not valid per axis (gyro x y z, accelerometer x y z: STATUS, Table 5-23)."""
 
     def feed(self, data: bytes) -> tuple[np.ndarray, stim.StimSamples]:
         s = self.decoder.feed(data)
@@ -131,12 +134,21 @@ class StimStream:
                     self.unknown_gaps.append(i0 + steps)
                 index[k] = i0 + steps
                 self.lost_samples += steps - 1
+                self.gaps += steps > 1
             self._last = (int(index[k]), counter, offset)
+        if n:
+            self.invalid += np.count_nonzero(~np.hstack([s.valid(0), s.valid(1)]), axis=0)
         return index, s
 
     def stats(self) -> dict[str, int]:
-        return {**self.decoder.stats.as_dict(), "lost_samples": self.lost_samples,
-                "unknown_gaps": len(self.unknown_gaps)}
+        """The decoder's counters, and the stream counters under the names the run's faults use
+        (frames, bad_crc, resyncs, sequence_gaps, lost_samples, skipped_bytes, invalid_<axis>)."""
+        d = self.decoder.stats
+        axes = ("gx", "gy", "gz", "ax", "ay", "az")
+        return {**d.as_dict(), "frames": d.datagrams, "bad_crc": d.crc_errors, "resyncs": d.crc_errors,
+                "sequence_gaps": self.gaps, "lost_samples": self.lost_samples,
+                "unknown_gaps": len(self.unknown_gaps),
+                **{f"invalid_{a}": int(v) for a, v in zip(axes, self.invalid, strict=True)}}
 
 
 def samples_to_block(index: np.ndarray, s: stim.StimSamples, cfg: StimConfig,
@@ -294,8 +306,7 @@ class StimImu(StreamReader, InertialStream):
         return {"model": "stim", "unit": self.ident.describe(), "rate_hz": self.rate_hz}
 
     def recorded_settings(self) -> dict[str, Any]:
-        return {**self.cfg.as_dict(), "identity": self.ident.describe(),
-                "stream_from_byte": self.stream_from_byte}
+        return {**self.cfg.as_dict(), "stream_from_byte": self.stream_from_byte}
 
     def configure_for_run(self, rate_hz: float | None) -> None:
         """The rate is the unit's (its listing); another asked for is a one-line error."""
