@@ -66,7 +66,8 @@ def check_lines(stage: str, imu: str, tilt: str, grade: str, tmp: Path) -> list[
         bench.write_text(
             f'[turntable]\nmodel = "{stage}"\nport = "{ep["turntable"]}"\n'
             f'[imu]\nmodel = "{imu}"\nport = "{ep["imu"]}"\n'
-            f'[accelerometer]\nmodel = "{tilt}"\ninterface = "{can["interface"]}"\nchannel = "{can["channel"]}"\n'
+            f'[accelerometer]\nmodel = "{tilt}"\ninterface = "{can["interface"]}"\n'
+            f'channel = "{can["channel"]}"\n'
             f"node_id = {can['node_id']}\nbus_options = {{sleep_after_open = 0.05}}\n"
             "[site]\nlatitude_deg = 40.0\n"
         )
@@ -168,11 +169,13 @@ def main() -> int:
                 print(f"   find FAILED: {r['failed']}", flush=True)
                 continue
             print(
-                f"   find {args.positions} x {args.dwell:g} s at {args.time_scale:g}x ({r['wall_s']:.0f} s wall): "
+                f"   find {args.positions} x {args.dwell:g} s at {args.time_scale:g}x "
+                f"({r['wall_s']:.0f} s wall): "
                 f"devices {r['devices']}; heading {r['heading']:.4f}°, error {r['error']:+.4f}°, "
                 f"σ {r['sigma']:.4f}°, |error|/σ {abs(r['error']) / r['sigma']:.2f}, limit ({grade}, "
                 f"{r['used_s']:.1f} s) {r['limit']:.4f}°, σ/limit {r['sigma'] / r['limit']:.3f}; "
-                f"replay identical: {r['replay_identical']}; IMU lost {r['lost_imu']} (bad CRC {r['bad_crc']}), "
+                f"replay identical: {r['replay_identical']}; IMU lost {r['lost_imu']} "
+                f"(bad CRC {r['bad_crc']}), "
                 f"accel lost {r['lost_accel']}",
                 flush=True,
             )
