@@ -121,23 +121,25 @@ class StimStream:
     def feed(self, data: bytes) -> tuple[np.ndarray, stim.StimSamples]:
         s = self.decoder.feed(data)
         n = len(s)
-        index = np.empty(n, dtype=np.int64)
-        for k in range(n):
-            counter, offset = int(s.counter[k]), int(s.byte_offset[k])
-            if self._last is None:
-                index[k] = counter // self.step
-            else:
-                i0, c0, o0 = self._last
-                steps = ((counter - c0) % 256) // self.step or self.period
-                missing_bytes = offset - o0 - self.size
-                if missing_bytes < (steps - 1) * self.size:  # bytes of lost datagrams never came
-                    self.unknown_gaps.append(i0 + steps)
-                index[k] = i0 + steps
-                self.lost_samples += steps - 1
-                self.gaps += steps > 1
-            self._last = (int(index[k]), counter, offset)
-        if n:
-            self.invalid += np.count_nonzero(~np.hstack([s.valid(0), s.valid(1)]), axis=0)
+        if n == 0:
+            return np.empty(0, dtype=np.int64), s
+        counter, offset = s.counter.astype(np.int64), s.byte_offset.astype(np.int64)
+        if self._last is None:
+            i0, c0, o0 = counter[0] // self.step - 1, counter[0] - self.step, offset[0] - self.size
+        else:
+            i0, c0, o0 = self._last
+        prev_c = np.concatenate(([c0], counter[:-1]))
+        prev_o = np.concatenate(([o0], offset[:-1]))
+        steps = ((counter - prev_c) % 256) // self.step
+        steps[steps == 0] = self.period
+        index = i0 + np.cumsum(steps)
+        missing_bytes = offset - prev_o - self.size
+        unknown = missing_bytes < (steps - 1) * self.size  # bytes of lost datagrams never came
+        self.unknown_gaps.extend(int(k) for k in index[unknown])
+        self.lost_samples += int(np.sum(steps - 1))
+        self.gaps += int(np.count_nonzero(steps > 1))
+        self._last = (int(index[-1]), int(counter[-1]), int(offset[-1]))
+        self.invalid += np.count_nonzero(~np.hstack([s.valid(0), s.valid(1)]), axis=0)
         return index, s
 
     def stats(self) -> dict[str, int]:
