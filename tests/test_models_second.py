@@ -17,7 +17,7 @@ from northfinder.devices import registry
 from northfinder.errors import DeviceError
 from northfinder.models.apt import state_from_bits
 from northfinder.models.cia410 import SATURATED, SlopeDecoder, slopes_to_block
-from northfinder.models.stim import StimConfig, StimStream, config_from_listing
+from northfinder.models.stim import StimConfig, StimStream, config_from_listing, listing_text
 
 LISTING = (
     "SERIAL NUMBER = N25582405002002\r\nPRODUCT = STIM300\r\nPART NUMBER = 84167-4400003-321 REV K\r\n"
@@ -53,6 +53,8 @@ def test_stim_listing_gives_units_rate_datagram_and_refuses_what_cannot_be_scale
     ident, cfg = config_from_listing(LISTING)
     assert ident.describe() == "Sensonor STIM300 s/n N25582405002002 p/n 84167-4400003-321 REV K"
     assert cfg == StimConfig(0x93, "increment", "increment", 10, 500)
+    # datagrams still in flight (or left in the port by an earlier session) run into the first line
+    assert config_from_listing(listing_text(b"\x93\x00\x05=\xff" + LISTING.encode()))[1] == cfg
     with pytest.raises(ValueError, match="AVERAGE"):
         config_from_listing(LISTING.replace("[°] – INCREMENTAL ANGLE", "[°/s] – AVERAGE ANGULAR RATE"))
     with pytest.raises(ValueError, match="range"):
@@ -138,10 +140,13 @@ def test_cia410_slopes_counter_saturation_and_malformed_frames():
 
 
 # -- on firmware-sim ------------------------------------------------------------------------------
-def test_check_names_each_second_model_and_the_identity_it_reports(tmp_path):
-    sim = start_sim(
-        "--stage", "apt", "--imu", "stim", "--tilt", "cia410", "--grade", "stim300", "--time-scale", "5"
-    )
+def test_check_and_find_config_on_a_bench_toml_naming_the_second_models(tmp_path):
+    """`check` names each model and the identity it reports; `find --config` on the same bench.toml
+    runs them (3 × 1 s on the stiffer stage) and its result names each model."""
+    fast = tmp_path / "fast.toml"
+    fast.write_text("stage_speed_dps = 90.0\nstage_accel_dps2 = 360.0\nstage_ringing_decay_s = 0.1\n")
+    sim = start_sim("--stage", "apt", "--imu", "stim", "--tilt", "cia410", "--grade", "stim300",
+                    "--time-scale", "5", "--accel-rate", "50", "--config", str(fast))
     try:
         ep = json.loads(sim.stdout.readline())
         can = ep["can"]
@@ -154,6 +159,8 @@ def test_check_names_each_second_model_and_the_identity_it_reports(tmp_path):
             "[site]\nlatitude_deg = 40.0\n"
         )
         out = run_cli("check", "--config", str(bench), cwd=tmp_path, timeout_s=90)
+        found = run_cli("find", "--config", str(bench), "--positions", "3", "--dwell", "1", "--no-report",
+                        "--out", str(tmp_path / "run"), cwd=tmp_path, timeout_s=120)
     finally:
         sim.terminate()
         sim.wait(timeout=10)
@@ -171,6 +178,10 @@ def test_check_names_each_second_model_and_the_identity_it_reports(tmp_path):
         "CiA 410 inclinometer (device type 0x0000019A)" in acc and "6010:0 (16 bit), 6020:0 (16 bit)" in acc
     )
     assert acc.endswith("[model cia410]")
+    assert found.returncode == 0, found.stderr[-1500:]
+    devices = json.loads((tmp_path / "run" / "result.json").read_text())["devices"]
+    assert {r: d["model"] for r, d in devices.items()} == {
+        "turntable": "apt", "imu": "stim", "accelerometer": "cia410"}
 
 
 def test_a_stim_asked_for_another_rate_is_one_line(tmp_path):

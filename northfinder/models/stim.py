@@ -40,6 +40,15 @@ LISTING_QUIET_S = 0.2
 """Host seconds without a byte that end the service-mode listing once its keys are there (the
 unit sends no datagram in Service Mode, TS1524 §8)."""
 _RANGE = re.compile(r"±\s*(\d+)\s*g", re.IGNORECASE)
+_KEY_LINE = re.compile(r"[A-Z][A-Z0-9 /\[\]()-]*=[^\x00-\x1f]*$")
+
+
+def listing_text(raw: bytes) -> str:
+    """The listing's `KEY = value` lines out of what arrived after SERVICEMODE: datagrams still in
+    flight (or left in the port's buffer by an earlier session) run into its first line."""
+    lines = raw.decode("utf-8", "replace").replace("\r", "\n").split("\n")
+    kept = [m.group(0) if (m := _KEY_LINE.search(line)) else line for line in lines]
+    return "\n".join(kept)
 
 
 @dataclass(frozen=True)
@@ -206,7 +215,7 @@ class StimImu(StreamReader, InertialStream):
         deadline = time.monotonic() + self.timeout_s
         with self._cond:
             while True:
-                text = bytes(self._text).decode("utf-8", "replace")
+                text = listing_text(bytes(self._text))
                 kv = stim.parse_service_listing(text)
                 if all(k in kv for k in LISTING_KEYS) and time.monotonic() - self._last_rx >= LISTING_QUIET_S:
                     break
