@@ -194,15 +194,13 @@ class StimImu(StreamReader, InertialStream):
         self._mark_stall = False
         self._unknown_seen = 0
         self._t = SerialTransport(port, device=DEVICE, baudrate=baudrate, timeout_s=0.05, raw_log=raw_log)
-        self._log_bytes = bytearray()  # everything before the stream exists (fed once it does)
         self._start_reader()
         try:
             self.ident, self.cfg = self._service_listing()
             self.rate_hz = float(self.cfg.rate_hz)
             with self._cond:  # the stream starts after the listing (replay: `stream_from_byte`)
                 self._stream = StimStream(self.cfg)
-                self.stream_from_byte = len(self._log_bytes)
-                self._log_bytes.clear()
+                self.stream_from_byte = len(self._text)
             self._t.write(stim.EXIT_TO_NORMAL_COMMAND)
             self._wait_first()
         except BaseException:
@@ -241,9 +239,8 @@ class StimImu(StreamReader, InertialStream):
 
     def _on_bytes(self, data: bytes, idle_s: float) -> None:
         self._last_rx = time.monotonic()
-        if self._stream is None:
+        if self._stream is None:  # the listing (and any datagram before it): not data
             self._text += data
-            self._log_bytes += data
             return
         if idle_s >= self.link_timeout_s:
             self._mark_stall = True
