@@ -360,7 +360,10 @@ def _concat(parts: list[stim.StimSamples]) -> stim.StimSamples:
 class StimLogDecoder(ImuDecoder):
     """imu.raw of a STIM run → samples (the live driver's StimStream and conversion: bit-identical)."""
 
-    counter_period = 0  # set per rate: 256 / (2000 / rate) datagrams
+    counter_period = 0
+    """0: the STIM's counter period depends on the recorded rate (256·rate/2000 datagrams), which this
+    class attribute cannot say; the align runs' clock placement (index_chunks, first_counter with
+    counter_period) does not take a STIM yet — only the turntable find does."""
 
     def decode_log(self, raw: bytes, settings: dict[str, Any]) -> tuple[ImuBlock, Any]:
         cfg = StimConfig.from_dict(settings)
@@ -369,7 +372,8 @@ class StimLogDecoder(ImuDecoder):
         return samples_to_block(index, s, cfg, stream.unknown_gaps), _Stats(stream.stats())
 
     def index_chunks(self, chunks: Sequence[bytes]) -> list[np.ndarray]:
-        raise InputError("the STIM's raw log needs its recorded settings to be cut in chunks")
+        raise InputError("align runs do not take a STIM IMU yet (its raw log is decoded with the run's "
+                         "recorded settings); use it with northfinder find")
 
     def first_counter(self, raw: bytes) -> int:
         for dg_id in stim.DATAGRAM_CONTENT:
