@@ -40,7 +40,8 @@ class AptStage(RotaryStage):
 
     def __init__(self, port: str, *, baudrate: int = BAUDRATE, timeout_s: float = 5.0,
                  transcript: Any = None, speed_deg_s: float = 0.0, accel_deg_s2: float = 0.0,
-                 limits_deg: tuple[float, float] = SOFT_LIMITS_DEG, rtscts: bool = False) -> None:
+                 limits_deg: tuple[float, float] = SOFT_LIMITS_DEG, rtscts: bool = True) -> None:
+        """`rtscts`: RTS/CTS flow control, as APT §2.1 asks of the FTDI link (harmless on a pty)."""
         self.port = port
         self.timeout_s = float(timeout_s)
         self._limits = (float(limits_deg[0]), float(limits_deg[1]))
