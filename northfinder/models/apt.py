@@ -53,6 +53,7 @@ class AptStage(RotaryStage):
         self._awaiting: int | None = None
         """MOVE_HOMED or MOVE_COMPLETED owed by the unit for the last home or move (None: none)."""
         try:
+            self._t.reset_input_buffer()  # the purge of APT §2.1 (what was dropped is logged)
             self.info = self._identify()
             self.velocity_params = self._velocity(speed_deg_s, accel_deg_s2)
             self._send(apt.set_channel_enable(True))
