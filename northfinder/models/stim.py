@@ -40,15 +40,21 @@ LISTING_QUIET_S = 0.2
 """Host seconds without a byte that end the service-mode listing once its keys are there (the
 unit sends no datagram in Service Mode, TS1524 §8)."""
 _RANGE = re.compile(r"±\s*(\d+)\s*g", re.IGNORECASE)
-_KEY_LINE = re.compile(r"[A-Z][A-Z0-9 /\[\]()-]*=[^\x00-\x1f]*$")
+_LISTING_KEYS_KNOWN = ("SERIAL NUMBER", "PRODUCT", "PART NUMBER", "FW CONFIG", "GYRO OUTPUT UNIT",
+                       "ACCELEROMETER OUTPUT UNIT", "INCLINOMETER OUTPUT UNIT", "SAMPLE RATE", "DATAGRAM",
+                       "ACCELEROMETER RANGE")
 
 
 def listing_text(raw: bytes) -> str:
-    """The listing's `KEY = value` lines out of what arrived after SERVICEMODE: datagrams still in
-    flight (or left in the port's buffer by an earlier session) run into its first line."""
+    """The listing out of what arrived after SERVICEMODE: datagrams still in flight (or left in the
+    port's buffer by an earlier session) run into its first line, so a line that holds a key of
+    TS1524 Figure 8-1 starts at that key."""
     lines = raw.decode("utf-8", "replace").replace("\r", "\n").split("\n")
-    kept = [m.group(0) if (m := _KEY_LINE.search(line)) else line for line in lines]
-    return "\n".join(kept)
+    out = []
+    for line in lines:
+        found = [k for k in (line.find(key) for key in _LISTING_KEYS_KNOWN) if k >= 0]
+        out.append(line[min(found):] if found else line)
+    return "\n".join(out)
 
 
 @dataclass(frozen=True)
