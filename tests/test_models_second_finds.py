@@ -28,6 +28,11 @@ pytestmark = pytest.mark.slow
 POSITIONS, DWELL_S, TIME_SCALE = 8, 2.0, 10.0
 FAST_STAGE_TOML = "stage_speed_dps = 90.0\nstage_accel_dps2 = 360.0\nstage_ringing_decay_s = 0.1\n"
 SIGMA_TOLERANCE = 0.20
+SIGMA_TOLERANCE_SHORT_STIM = 0.35
+"""A STIM300 over 8 × 2 s: σ/limit measured 0.80–1.26 (and 0.85–1.14 over 8 × 5 s, seeds 1–3): its
+bias instability (0.3 °/h, 100 s) is not small against the ~1 °/h a 5° σ means, and the motion
+fit's σ over a span mostly in motion scatters. The 20 % claim for the STIM is shown at 8 × 20 s by
+tools/second_models_table.py (σ/limit 0.98–1.03)."""
 
 
 def _limit_deg(result: dict, grade: str) -> float:
@@ -78,7 +83,7 @@ def _find(tmp_path: Path, models: dict[str, str], grade: str, *faults: str) -> t
 
 
 def _check(result: dict, run_dir: Path, grade: str, models: dict[str, str],
-           sigma_vs_limit: bool = True) -> None:
+           sigma_tolerance: float | None = SIGMA_TOLERANCE) -> None:
     assert result["complete"] and result["positions_measured"] == POSITIONS
     roles = {"stage": "turntable", "imu": "imu", "tilt": "accelerometer"}
     assert {roles[r]: m for r, m in models.items()}.items() <= {
@@ -87,8 +92,8 @@ def _check(result: dict, run_dir: Path, grade: str, models: dict[str, str],
     err = (result["heading_deg"] - result["truth"]["heading_deg"] + 180.0) % 360.0 - 180.0
     sigma, limit = result["heading_std_deg"], _limit_deg(result, grade)
     assert abs(err) < 3.0 * sigma, (err, sigma)
-    if sigma_vs_limit:
-        assert abs(sigma / limit - 1.0) < SIGMA_TOLERANCE, (sigma, limit)
+    if sigma_tolerance is not None:
+        assert abs(sigma / limit - 1.0) < sigma_tolerance, (sigma, limit)
     again = replay(run_dir)
     assert json.loads(json.dumps(jsonable(again.result))) == json.loads((run_dir / RESULT).read_text())
 
@@ -110,7 +115,7 @@ def test_stim_finds_north_with_corrupt_and_flagged_datagrams_counted(tmp_path):
     # σ is not held to the limit here: the motion fit leaves out every stretch between dwells that
     # holds a lost sample (faults.md), which at this rate is most or all of them, and the dwells'
     # own σ (8 means, 10 degrees of freedom) scatters by ~22 % around the limit
-    _check(result, run_dir, "stim300", models, sigma_vs_limit=False)
+    _check(result, run_dir, "stim300", models, sigma_tolerance=None)
     motion = result["motion_fit"]
     assert not motion["available"] or motion["samples"]["stretches_dropped"] > 0, motion
     imu = result["faults"]["imu"]
@@ -132,7 +137,7 @@ def test_cia410_inclinometer_gives_the_tilt(tmp_path):
 def test_mixed_bench_apt_stim_cia410_in_one_find(tmp_path):
     models = {"stage": "apt", "imu": "stim", "tilt": "cia410"}
     result, run_dir = _find(tmp_path, models, "stim300")
-    _check(result, run_dir, "stim300", models)
+    _check(result, run_dir, "stim300", models, SIGMA_TOLERANCE_SHORT_STIM)
     assert json.loads((run_dir / "config.json").read_text())["simulate"]["models"] == {
         "stage": "apt",
         "imu": "stim",

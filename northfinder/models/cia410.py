@@ -38,6 +38,10 @@ RESOLUTION_MDEG = 1
 """0x6000 written at start: 0.001° per LSB, the finest the profile has (17.45 µg at level)."""
 EVENT_DRIVEN = 0xFE
 SATURATED = 0x01
+SDO_TIMEOUT_S = 2.0
+"""Host seconds the SDO client waits for each answer. CiA 301 fixes none; our node's protocol says
+1 s (PROTOCOLS.md §3.1). The profile's start-up is a dozen exchanges; on the loaded shared host one
+find's configuration once stopped after the identity step at 1 s (not seen again at 2 s)."""
 
 
 @dataclass
@@ -258,6 +262,7 @@ def _open(section: Any, log_path: Any, options: dict[str, Any]) -> Cia410Inclino
                               node_id=value(section, "node_id", 0x10),
                               rate_hz=value(section, "rate_hz", 0.0) or 100.0,
                               eds_path=options.get("eds_path") or DEFAULT_EDS_PATH, log_path=log_path,
+                              sdo_timeout_s=SDO_TIMEOUT_S,
                               bus_options=bus_options or None)
 
 
