@@ -48,13 +48,16 @@ def firmware_sim_argv(options: dict[str, Any], faults: Sequence[str] = ()) -> li
 
 
 def _flag_value(value: Any, kind: str) -> Any:
-    """A field as its flag takes it: "float"/"int" (None stays None), "opt" (empty → left out)."""
+    """A field as its flag takes it: "float"/"int" (None stays None), "opt" (empty → left out),
+    "unless=V" (V, firmware-sim's default, left out)."""
     if kind == "float":
         return None if value is None else float(value)
     if kind == "int":
         return None if value is None else int(value)
     if kind == "opt":
         return value or None
+    if kind.startswith("unless="):  # firmware-sim's own default is left out of its command line
+        return None if value == kind.removeprefix("unless=") else value
     return value
 
 
@@ -94,6 +97,8 @@ class SimSettings(SimScenario):
         ("roll_deg", "--roll", "float"),
         ("latitude_deg", "--latitude", "float"), ("grade", "--grade", ""), ("seed", "--seed", "int"),
         ("time_scale", "--time-scale", "float"), ("config", "--config", "opt"), ("can", "--can", "opt"),
+        ("stage_model", "--stage", "unless=smc100"), ("imu_model", "--imu", "unless=kvh"),
+        ("tilt_model", "--tilt", "unless=nf-accel"),
     )
 
     heading_deg: float = 37.0
@@ -107,6 +112,10 @@ class SimSettings(SimScenario):
     config: str | None = None
     can: str | None = None
     """Where firmware-sim puts its CAN node, INTERFACE[:CHANNEL] (None: its slcan adapter on a pty)."""
+    stage_model: str = "smc100"
+    imu_model: str = "kvh"
+    tilt_model: str = "nf-accel"
+    """The simulated devices' models (firmware-sim --stage/--imu/--tilt; bench.toml's `model =` names)."""
 
     def truth(self) -> dict[str, float]:
         return {

@@ -42,11 +42,13 @@ IMU_GRADES: dict[str, ImuGrade] = {
         ("kvh1760",       0.012, 120.0, 0.05, 50.0,  300.0, 0.26,      410.0,     20.0),
         ("tactical-mems", 0.15,  40.0, 0.5,   10.0,  100.0, 4.6,       700.0,     200.0),
         ("consumer",      1.0,   200.0, 10.0, 100.0, 60.0,  177.0,     20400.0,   2000.0),
+        ("stim300",       0.15,  40.8, 0.3,   5.0,   100.0, 2.55,      646.0,     101.0),
     )
 }
 """The turn-on figures are the rms over the axes of each class's stated turn-on biases, ⊕ its bias
 instability (kvh1760: rms(0.3, 0.2, 0.25) °/h ⊕ 0.05 °/h = 0.26 °/h; rms(500, 400, 300) µg ⊕ 50 µg
-= 410 µg)."""
+= 410 µg; stim300, TS1524 rev.31 Tables 5-3/5-5 as firmware_sim's preset: rms(3, 2.5, 2) °/h ⊕ 0.3 °/h
+= 2.55 °/h, rms(800, 600, 500) µg ⊕ 5 µg = 646 µg, SF asymmetry rms(100, 80, 120) = 101 ppm)."""
 
 
 def imu_grade(name: str) -> ImuGrade:

@@ -23,6 +23,9 @@ from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.runs import find as find_run
 from northfinder.simulate import SimSettings
 
+SIM_STAGES, SIM_IMUS, SIM_TILTS = ("smc100", "apt"), ("kvh", "stim"), ("nf-accel", "cia410")
+"""The models firmware-sim emulates per role (firmware-sim --stage/--imu/--tilt)."""
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -92,8 +95,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "with --config)",
     )
     sim.add_argument("--grade", default=None, metavar="NAME",
-                     help=f"sensor grade: nav, kvh1760, tactical-mems, consumer (simulated: default "
-                     f"{d.grade}; with --config: the grade --target-std/--time-budget plan for)")
+                     help=f"sensor grade: nav, kvh1760, tactical-mems, consumer, stim300 (simulated: "
+                     f"default {d.grade}, stim300 with --imu stim; with --config: the grade "
+                     "--target-std/--time-budget plan for)")
     sim.add_argument(
         "--seed",
         type=int,
@@ -108,6 +112,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="K",
         help=f"device time runs K× the wall clock (default {find_run.DEFAULT_TIME_SCALE:g})",
     )
+    for flag, models, default in (("--stage", SIM_STAGES, "smc100"), ("--imu", SIM_IMUS, "kvh"),
+                                  ("--tilt", SIM_TILTS, "nf-accel")):
+        sim.add_argument(flag, choices=models, default=None, metavar="MODEL",
+                         help=f"the simulated {flag[2:]}'s model: {', '.join(models)} (default {default}; "
+                         "bench.toml's `model =`)")
     sim.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
                      help="firmware-sim fault, e.g. imu-silence=10:2 (repeatable)")
     sim.add_argument("--sim-config", metavar="FILE_TOML", help="firmware-sim's own --config file")

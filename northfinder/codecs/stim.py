@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from northfinder.codecs.kvh import crc32_mpeg2
+from northfinder.codecs.kvh import crc32_mpeg2, crc32_mpeg2_rows
 
 STANDARD_GRAVITY_M_S2 = 9.80665
 """k0 of TS1524 Table 7-2 and g0 of §3.1."""
@@ -263,6 +263,12 @@ class StimDecoder:
             if b0 == self.datagram_id:
                 if len(buf) - i < self.size:
                     break
+                run = self._good_run(buf, i)
+                if run:  # consecutive good datagrams, checked at once (the common case)
+                    rows.extend(range(i, i + run * self.size, self.size))
+                    i += run * self.size
+                    self._resyncing = False
+                    continue
                 crc = int.from_bytes(buf[i + body_len : i + body_len + 4], "big")
                 if stim_crc(bytes(buf[i : i + body_len])) == crc:
                     rows.append(i)
@@ -287,6 +293,27 @@ class StimDecoder:
         del buf[:i]
         self._offset += i
         return out
+
+    def _good_run(self, buf: bytearray, i: int) -> int:
+        """How many datagrams starting at buf[i], back to back, have their identifier and a good
+        CRC (vectorized: the same test as the byte-wise path, many datagrams at a time)."""
+        m = (len(buf) - i) // self.size
+        if m < 2:
+            return 0
+        block = np.frombuffer(bytes(buf[i : i + m * self.size]), dtype=np.uint8).reshape(m, self.size)
+        starts = block[:, 0] == self.datagram_id
+        m = int(np.argmin(starts)) if not starts.all() else m
+        if m == 0:
+            return 0
+        body_len = self.layout["crc"]
+        body = block[:m, :body_len]
+        pad = -body_len % 4
+        if pad:
+            body = np.hstack([body, np.zeros((m, pad), dtype=np.uint8)])
+        crc = block[:m, body_len : body_len + 4].astype(np.uint32)
+        sent = (crc[:, 0] << 24) | (crc[:, 1] << 16) | (crc[:, 2] << 8) | crc[:, 3]
+        good = crc32_mpeg2_rows(body) == sent
+        return m if good.all() else int(np.argmin(good))
 
     def _decode_rows(self, chunk: bytes, rows: list[int]) -> StimSamples:
         n = len(rows)

@@ -52,6 +52,9 @@ BUILTIN: dict[str, str] = {
     "imu/kvh": "northfinder.models.kvh:SPEC",
     "accelerometer/nf-accel": "northfinder.models.nf_accel:SPEC",
     "gnss/nmea": "northfinder.models.nmea:SPEC",
+    "turntable/apt": "northfinder.models.apt:SPEC",
+    "imu/stim": "northfinder.models.stim:SPEC",
+    "accelerometer/cia410": "northfinder.models.cia410:SPEC",
 }
 
 _loaded: dict[str, ModelSpec] = {}

@@ -60,6 +60,9 @@ GRADES: dict[str, Sensor] = {
     "kvh1760": Sensor(0.012, 0.05, 300.0, 0.01, 120.0),
     "tactical-mems": Sensor(0.15, 0.5, 100.0, 0.5, 40.0),
     "consumer": Sensor(1.0, 10.0, 60.0, 10.0, 200.0),
+    # Sensonor STIM300, datasheet TS1524 rev.31 Tables 5-3/5-5 (as firmware_sim's stim300 preset):
+    # ARW 0.15 °/√h, bias instability 0.3 °/h, accelerometer VRW 0.024 m/s/√h = 40.8 µg/√Hz
+    "stim300": Sensor(0.15, 0.3, 100.0, 0.3, 0.024 / 60.0 / 9.80665 * 1e6),
 }
 
 

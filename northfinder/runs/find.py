@@ -86,6 +86,19 @@ class FindRequest:
     time_budget: float | None = None
     can: str | None = None
     """--simulate: firmware-sim's CAN node on INTERFACE[:CHANNEL], e.g. socketcan:vcan0."""
+    stage: str | None = None
+    imu: str | None = None
+    tilt: str | None = None
+    """--simulate: the simulated devices' models (firmware-sim --stage/--imu/--tilt; None: the defaults)."""
+
+
+SIM_IMU_GRADES = {"stim": "stim300"}
+"""--simulate's grade for an IMU model when --grade is not given (others: SimSettings.grade)."""
+
+
+def sim_grade(req: FindRequest) -> str:
+    """The simulated sensors' grade: --grade, else the simulated IMU model's own, else the default."""
+    return req.grade or SIM_IMU_GRADES.get(req.imu or "", SimSettings.grade)
 
 
 def check_request(req: FindRequest) -> None:
@@ -98,6 +111,10 @@ def check_request(req: FindRequest) -> None:
     if req.latitude is not None and not (math.isfinite(req.latitude) and -lim <= req.latitude <= lim):
         raise InputError(f"--latitude {req.latitude:g}: use −{lim:g}…{lim:g} degrees (north positive; within "
                          f"{90 - lim:g}° of a pole the heading is undefined)")
+    models = [f"--{k} {v}" for k, v in (("stage", req.stage), ("imu", req.imu), ("tilt", req.tilt)) if v]
+    if models and not req.simulate:
+        raise InputError(f"{models[0]}: the simulated device's model; with --config the bench.toml's "
+                         "`model =` of its section names it")
     if req.fault and req.config:
         msg = f"--fault {req.fault[0]}: faults are injected by the simulator; use them with --simulate"
         raise InputError(msg)
@@ -142,6 +159,9 @@ def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSetting
         cfg = bench.BenchConfig(source="--simulate")
         cfg.accelerometer.rate_hz = accel_rate_hz
         cfg.run.dwell_s = SIM_DEFAULT_DWELL_S
+        cfg.turntable.model = req.stage or cfg.turntable.model
+        cfg.imu.model = req.imu or cfg.imu.model
+        cfg.accelerometer.model = req.tilt or cfg.accelerometer.model
         latitude_deg = req.latitude if req.latitude is not None else SimSettings.latitude_deg
         cfg = _apply_overrides(cfg, req, latitude_deg)
     else:
@@ -151,7 +171,7 @@ def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSetting
     if req.target_std is not None or req.time_budget is not None:
         from northfinder.runs.find_plan import choose_for_run
 
-        grade = req.grade or (SimSettings.grade if req.simulate else None)
+        grade = sim_grade(req) if req.simulate else req.grade
         prediction = choose_for_run(cfg, grade, req.target_std, req.time_budget)
     out = req.out or default_out("find")
     rundir = RunDir.new_run(out, f", or continue that one with `northfinder find --resume {out}`")
@@ -162,12 +182,15 @@ def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSetting
             pitch_deg=req.pitch,
             roll_deg=req.roll,
             latitude_deg=cfg.site.latitude_deg,
-            grade=req.grade or SimSettings.grade,
+            grade=sim_grade(req),
             seed=req.seed,
             time_scale=req.time_scale,
             faults=tuple(req.fault),
             config=str(write_sim_config(rundir, sim_text)),
             can=req.can,
+            stage_model=cfg.turntable.model,
+            imu_model=cfg.imu.model,
+            tilt_model=cfg.accelerometer.model,
         )
     return cfg, rundir, settings, prediction
 
@@ -246,6 +269,8 @@ def _sim_info(settings: SimSettings | None) -> dict[str, Any] | None:
         return None
     return {**settings.truth(), "grade": settings.grade, "seed": settings.seed,
             "time_scale": settings.time_scale, "faults": list(settings.faults),
+            "models": {"stage": settings.stage_model, "imu": settings.imu_model,
+                       "tilt": settings.tilt_model},
             **({"can": settings.can} if settings.can else {})}
 
 
@@ -258,7 +283,8 @@ def _configure(cfg: bench.BenchConfig, imu: InertialStream, acc: TiltSensor,
 
 
 def _start_event(ctx: RunContext, imu: InertialStream, acc_info: dict[str, Any],
-                 sim_info: dict[str, Any] | None) -> dict[str, Any]:
+                 sim_info: dict[str, Any] | None,
+                 stage_identity: dict[str, Any] | None = None) -> dict[str, Any]:
     """The session's start event: what replay needs to decode its logs, and the plan."""
     cfg = ctx.cfg
     return {
@@ -272,8 +298,10 @@ def _start_event(ctx: RunContext, imu: InertialStream, acc_info: dict[str, Any],
         "positions_planned": cfg.run.positions,
         "dwell_s": cfg.run.dwell_s,
         "plan": cfg.run.plan,
-        "turntable": {"model": registry.model_of(cfg.turntable, "turntable")},
-        "imu": {"port": cfg.imu.port, **imu.recorded_settings(), "model": registry.model_of(cfg.imu, "imu")},
+        "turntable": {"model": registry.model_of(cfg.turntable, "turntable"),
+                      "identity": stage_identity or {}},
+        "imu": {"port": cfg.imu.port, **imu.recorded_settings(), "identity": imu.identity(),
+                "model": registry.model_of(cfg.imu, "imu")},
         "accelerometer": {**acc_info, "model": registry.model_of(cfg.accelerometer, "accelerometer")},
         "truth": ctx.truth,
         **(ctx.start_extra or {}),
@@ -336,7 +364,7 @@ def measure(
     stop = StopFlag()
     with stop.installed(), open_bench(cfg, rundir, can_kwargs) as (tt, imu, acc):
         acc_info = _configure(cfg, imu, acc, rundir)
-        ctx.event(_start_event(ctx, imu, acc_info, sim_info))
+        ctx.event(_start_event(ctx, imu, acc_info, sim_info, tt.identity()))
         positions = _sequence(ctx, (tt, imu, acc), stop, list(previous or []), skip, seq_kwargs)
     result = _result(ctx, positions, complete=True)
     ctx.finish(result)
@@ -348,7 +376,7 @@ def _result(ctx: RunContext, positions: Sequence[PositionMeans], complete: bool)
     events = ctx.rundir.events()
     return compute_result(positions, cfg.site.latitude_deg, cfg.estimator.method, height_m=cfg.site.height_m,
                           truth=ctx.truth, complete=complete, positions_planned=cfg.run.positions,
-                          faults=faults_summary(events), plan=cfg.run.plan,
+                          faults=faults_summary(events), plan=cfg.run.plan, devices=devices_summary(events),
                           motion=_motion(ctx.rundir, events, cfg.site.height_m),
                           prediction=(ctx.start_extra or {}).get("plan_prediction"))
 
@@ -436,6 +464,7 @@ def prepare_resume(run_dir: str | Path, time_scale: float, faults: Sequence[str]
             faults=tuple(faults) if faults else tuple(sim.get("faults", ())),
             config=str(sim_toml) if sim_toml.exists() else None,
             can=sim.get("can"),
+            **{f"{role}_model": name for role, name in sim.get("models", {}).items()},
         )
     else:
         bench.require_ports(cfg)
@@ -540,6 +569,7 @@ def compute_result(
     plan: str = "positions",
     motion: Callable[[HeadingSolution], dict[str, Any]] | None = None,
     prediction: dict[str, Any] | None = None,
+    devices: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The result dict (docs/result-schema.md) from per-position means: every method's heading,
     the tilt, the per-position data, the error against the truth for a simulated run, and what
@@ -588,6 +618,8 @@ def compute_result(
         result["motion_fit"] = motion_info
     if prediction is not None:
         result["plan_prediction"] = prediction
+    if devices:
+        result["devices"] = devices
     if faults is not None:
         result["faults"] = faults
     if truth is not None:
@@ -705,6 +737,19 @@ def _decode_session(rd: RunDir, session: int, start: dict[str, Any]) -> tuple[An
     return block, accel_block
 
 
+def devices_summary(events: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Each role's model (and the identity its device reported) from the run's first start event."""
+    starts = [e for e in events if e.get("event") == "start"]
+    if not starts:
+        return {}
+    out = {}
+    for role in registry.ROLES:
+        entry = starts[0].get(role)
+        if isinstance(entry, dict):
+            out[role] = {"model": registry.model_of(entry, role), "identity": entry.get("identity", {})}
+    return out
+
+
 def _check_covered(rd: RunDir, session: int, ev: dict[str, Any], block: Any, k: int) -> None:
     """A raw log cut short (a copy interrupted, a disk full) ends inside a kept dwell: say so, in
     samples, instead of letting an empty selection reach the estimator as NaN."""
@@ -767,6 +812,7 @@ def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
             complete=complete,
             positions_planned=planned,
             faults=faults_summary(events),
+            devices=devices_summary(events),
             plan=start.get("plan", "positions"),
             motion=_motion(rd, events, start.get("height_m", 0.0), block if session == 1 else None),
             prediction=start.get("plan_prediction"),
