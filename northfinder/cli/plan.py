@@ -20,7 +20,7 @@ from northfinder.estimators.heading import DEFAULT_TILT_LIMIT_DEG, MAX_ABS_LATIT
 _NUMBERS = {
     "latitude": "--latitude", "target_std": "--target-std", "time_budget": "--time-budget", "arw": "--arw",
     "bias_instability": "--bias-instability", "rrw": "--rrw", "accel_noise": "--accel-noise",
-    "tilt": "--tilt", "stage_speed": "--stage-speed", "stage_accel": "--stage-accel", "settle": "--settle",
+    "tilt": "--tilt-bound", "stage_speed": "--stage-speed", "stage_accel": "--stage-accel", "settle": "--settle",
     "turnaround": "--turnaround",
 }  # fmt: skip
 
@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--accel-noise", metavar="UG_RT_HZ", help="accelerometer noise [µg/√Hz] (overrides)")
     p.add_argument("--gyro-axes", default="xyz", metavar="AXES",
                    help="xyz (default), xy or y; without a z gyro only stop-and-go plans")  # fmt: skip
-    p.add_argument("--tilt", default="2", metavar="DEG", help="tilt bound of the table [deg] (default 2)")
+    p.add_argument("--tilt-bound", dest="tilt", default="2", metavar="DEG",
+                   help="tilt bound of the table [deg] (default 2)")
     d = model.Stage()
     p.add_argument(
         "--stage-speed", default=str(d.speed_deg_s), metavar="DEG_S", help="stage speed (SMC100 VA)"
