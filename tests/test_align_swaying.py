@@ -24,10 +24,11 @@ from northfinder.cli.replay import differences
 from northfinder.rundir import CONFIG, RESULT
 from northfinder.runs import swaying as sr
 
-TIME_SCALE = 40.0
-"""The ship's 1000 Hz stream read by the Imu driver lost nothing at 30× and 50× on this shared 2-core
-host (300 device s in 11.7 s and 8.4 s of wall). A simulator that falls behind delays the data, it
-does not lose it (a slow reader would: the counters are asserted to be 0)."""
+TIME_SCALE = 20.0
+"""The ship's 1000 Hz stream, 20 000 frames (720 kB) a wall second: at 40× a CI host loaded by the
+suite's other workers lost 398–7 141 samples to pty overruns (the reader paused longer than the
+pty's buffer holds), so the counters asserted to be 0 were not. A simulator that falls behind
+delays the data, it does not lose it; a slow reader does lose it."""
 TILT_TOL_DEG = math.degrees(30e-6 + 20e-6 + 6e-6) + 0.0003
 
 
