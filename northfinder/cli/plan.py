@@ -20,8 +20,8 @@ from northfinder.estimators.heading import DEFAULT_TILT_LIMIT_DEG, MAX_ABS_LATIT
 _NUMBERS = {
     "latitude": "--latitude", "target_std": "--target-std", "time_budget": "--time-budget", "arw": "--arw",
     "bias_instability": "--bias-instability", "rrw": "--rrw", "accel_noise": "--accel-noise",
-    "tilt": "--tilt-bound", "stage_speed": "--stage-speed", "stage_accel": "--stage-accel", "settle": "--settle",
-    "turnaround": "--turnaround",
+    "tilt": "--tilt-bound", "stage_speed": "--stage-speed", "stage_accel": "--stage-accel",
+    "settle": "--settle", "turnaround": "--turnaround",
 }  # fmt: skip
 
 
