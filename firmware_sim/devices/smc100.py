@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from firmware_sim import __version__
-from firmware_sim.devices.base import Device
+from firmware_sim.devices.base import PtyDevice
 from firmware_sim.pty import PtyPort
 
 log = logging.getLogger("firmware_sim.smc100")
@@ -325,7 +325,7 @@ def motion_time_s(distance: float, velocity: float, acceleration: float) -> floa
 # ---------------------------------------------------------------------------------------------
 # Controller
 # ---------------------------------------------------------------------------------------------
-class Smc100(Device):
+class Smc100(PtyDevice):
     """The controller on its own pty, driving `world.table`.
 
     `stall_move` (fault stage-stall=N): the N-th PA/PR since start jams half-way (the table
@@ -382,15 +382,6 @@ class Smc100(Device):
             rad["AC"], rad["VA"], rad["OH"])
 
     # -- Device surface ---------------------------------------------------------------------
-    def fileno(self) -> int | None:
-        return self.port.watch_fileno()
-
-    def endpoint(self) -> str:
-        return self.port.path
-
-    def close(self) -> None:
-        self.port.close()
-
     def on_readable(self, t_device_s: float) -> None:
         self._rx += self.port.read()
         while True:
