@@ -77,6 +77,18 @@ class ExpectedProtocol:
         assert not self._pairs, f"the driver did not send {self._pairs}"
 
 
+def crc32_mpeg2_bitwise(data: bytes) -> int:
+    """Reference CRC-32/MPEG-2, one bit at a time (poly 0x04C11DB7, init FFFFFFFF, not reflected, no
+    final XOR): the KVH format A check (PROTOCOLS.md §2, the KVH manual's Table 5-9) and the STIM300
+    datagram check (TS1524 rev.31 Table 5-22). Written from the definition, not from either codec."""
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte << 24
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x04C11DB7) & 0xFFFFFFFF if crc & 0x80000000 else (crc << 1) & 0xFFFFFFFF
+    return crc
+
+
 def write_all(fd: int, data: bytes) -> None:
     """os.write until every byte is in (a pty takes a few KiB at a time)."""
     view = memoryview(data)

@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 import serial
+from helpers import crc32_mpeg2_bitwise
 
 from firmware_sim.config import SimConfig
 from firmware_sim.devices import kvh, smc100
@@ -23,16 +24,6 @@ from firmware_sim.simulator import Simulator
 from northfinder.constants import DPH, earth_rate_enu_rad_s, normal_gravity_m_s2
 
 HEADER = b"\xfe\x81\xff\x55"
-
-
-def _crc_bitwise(data: bytes) -> int:
-    """Reference CRC-32/MPEG-2, one bit at a time, straight from PROTOCOLS.md §2."""
-    crc = 0xFFFFFFFF
-    for byte in data:
-        crc ^= byte << 24
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x04C11DB7) & 0xFFFFFFFF if crc & 0x80000000 else (crc << 1) & 0xFFFFFFFF
-    return crc
 
 
 # ---------------------------------------------------------------------------------------------
@@ -49,7 +40,7 @@ def test_crc_vectorized_matches_bitwise_reference():
     for width in (32, 7, 1, 0):  # even and odd lengths take different table paths
         rows = np.random.default_rng(width).integers(0, 256, (64, width), dtype=np.uint8)
         got = kvh.crc32_mpeg2_rows(rows)
-        assert [int(c) for c in got] == [_crc_bitwise(bytes(r)) for r in rows]
+        assert [int(c) for c in got] == [crc32_mpeg2_bitwise(bytes(r)) for r in rows]
 
 
 def test_kvh_messages_golden(golden):
