@@ -89,6 +89,18 @@ def crc32_mpeg2_bitwise(data: bytes) -> int:
     return crc
 
 
+def recv_frames(bus, ids: Sequence[int], n: int, timeout_s: float) -> list:
+    """Up to `n` frames whose arbitration id is in `ids`, received from the python-can `bus` within
+    `timeout_s` host seconds (a bound only: the caller decides on what arrived)."""
+    frames = []
+    deadline = time.monotonic() + timeout_s
+    while len(frames) < n and time.monotonic() < deadline:
+        msg = bus.recv(timeout=1.0)
+        if msg is not None and msg.arbitration_id in ids:
+            frames.append(msg)
+    return frames
+
+
 def write_all(fd: int, data: bytes) -> None:
     """os.write until every byte is in (a pty takes a few KiB at a time)."""
     view = memoryview(data)

@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 import serial
-from helpers import crc32_mpeg2_bitwise
+from helpers import crc32_mpeg2_bitwise, recv_frames
 
 from firmware_sim.config import SimConfig
 from firmware_sim.devices import kvh, smc100
@@ -513,12 +513,8 @@ def test_default_bench_can_accelerometer_over_slcan():
             first = bus.recv(timeout=5.0)  # the node powers on when the adapter's channel opens
             assert first is not None and (first.arbitration_id, bytes(first.data)) == (0x710, b"\x00")
             bus.send(can.Message(arbitration_id=0x000, data=[0x01, 0x10], is_extended_id=False))
-            z_ug = []
-            deadline = time.monotonic() + 10.0
-            while len(z_ug) < 50 and time.monotonic() < deadline:
-                msg = bus.recv(timeout=1.0)
-                if msg is not None and msg.arbitration_id == 0x290:
-                    z_ug.append(int.from_bytes(msg.data[:4], "little", signed=True))
+            z_ug = [int.from_bytes(msg.data[:4], "little", signed=True)
+                    for msg in recv_frames(bus, (0x290,), 50, timeout_s=10.0)]
         finally:
             bus.shutdown()
     finally:
@@ -613,12 +609,7 @@ def test_virtual_can_interface_for_in_process_clients():
         boot = client.recv(timeout=5.0)
         assert boot is not None and (boot.arbitration_id, bytes(boot.data)) == (0x710, b"\x00")
         client.send(can.Message(arbitration_id=0x000, data=[0x01, 0x00], is_extended_id=False))
-        ids = []
-        deadline = time.monotonic() + 10.0
-        while len(ids) < 20 and time.monotonic() < deadline:
-            msg = client.recv(timeout=1.0)
-            if msg is not None and msg.arbitration_id in (0x190, 0x290):
-                ids.append(msg.arbitration_id)
+        ids = [msg.arbitration_id for msg in recv_frames(client, (0x190, 0x290), 20, timeout_s=10.0)]
         assert len(ids) == 20 and ids[0] == 0x190  # TPDO1 then TPDO2, pair after pair
         assert ids == [0x190, 0x290] * 10
     finally:

@@ -20,7 +20,7 @@ import canopen
 import numpy as np
 import pytest
 import serial
-from helpers import crc32_mpeg2_bitwise
+from helpers import crc32_mpeg2_bitwise, recv_frames
 
 from firmware_sim.config import SimConfig
 from firmware_sim.devices.apt import AptStage
@@ -322,12 +322,8 @@ def test_mixed_bench_apt_stim_cia410_on_the_simulator():
             first = bus.recv(timeout=10.0)
             assert first is not None and (first.arbitration_id, bytes(first.data)) == (0x710, b"\x00")
             bus.send(can.Message(arbitration_id=0x000, data=[0x01, 0x10], is_extended_id=False))
-            slopes = []
-            deadline = time.monotonic() + 20
-            while len(slopes) < 20 and time.monotonic() < deadline:
-                msg = bus.recv(timeout=1.0)
-                if msg is not None and msg.arbitration_id == 0x190:
-                    slopes.append(struct.unpack("<hh", bytes(msg.data)))
+            slopes = [struct.unpack("<hh", bytes(msg.data))
+                      for msg in recv_frames(bus, (0x190,), 20, timeout_s=20)]
         finally:
             bus.shutdown()
         assert len(slopes) == 20
