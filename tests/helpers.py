@@ -77,6 +77,30 @@ class ExpectedProtocol:
         assert not self._pairs, f"the driver did not send {self._pairs}"
 
 
+def crc32_mpeg2_bitwise(data: bytes) -> int:
+    """Reference CRC-32/MPEG-2, one bit at a time (poly 0x04C11DB7, init FFFFFFFF, not reflected, no
+    final XOR): the KVH format A check (PROTOCOLS.md §2, the KVH manual's Table 5-9) and the STIM300
+    datagram check (TS1524 rev.31 Table 5-22). Written from the definition, not from either codec."""
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte << 24
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x04C11DB7) & 0xFFFFFFFF if crc & 0x80000000 else (crc << 1) & 0xFFFFFFFF
+    return crc
+
+
+def recv_frames(bus, ids: Sequence[int], n: int, timeout_s: float) -> list:
+    """Up to `n` frames whose arbitration id is in `ids`, received from the python-can `bus` within
+    `timeout_s` host seconds (a bound only: the caller decides on what arrived)."""
+    frames = []
+    deadline = time.monotonic() + timeout_s
+    while len(frames) < n and time.monotonic() < deadline:
+        msg = bus.recv(timeout=1.0)
+        if msg is not None and msg.arbitration_id in ids:
+            frames.append(msg)
+    return frames
+
+
 def write_all(fd: int, data: bytes) -> None:
     """os.write until every byte is in (a pty takes a few KiB at a time)."""
     view = memoryview(data)

@@ -13,20 +13,12 @@ import struct
 import time
 
 import serial
+from helpers import crc32_mpeg2_bitwise
 
 from firmware_sim.config import SimConfig
 from firmware_sim.simulator import Simulator
 
 HEADER = b"\xfe\x81\xff\x55"
-
-
-def crc32_table_5_9(data: bytes) -> int:
-    crc = 0xFFFFFFFF
-    for byte in data:
-        crc ^= byte << 24
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x04C11DB7) & 0xFFFFFFFF if crc & 0x80000000 else (crc << 1) & 0xFFFFFFFF
-    return crc
 
 
 class ManualClient:
@@ -68,7 +60,7 @@ class ManualClient:
             self.buffer += self.port.read(4096)
             while (at := self.buffer.find(HEADER)) >= 0 and len(self.buffer) >= at + 36:
                 msg = bytes(self.buffer[at:at + 36])
-                if crc32_table_5_9(msg[:32]) == struct.unpack(">I", msg[32:])[0]:
+                if crc32_mpeg2_bitwise(msg[:32]) == struct.unpack(">I", msg[32:])[0]:
                     gy = struct.unpack(">f", msg[8:12])[0]
                     out.append((msg[28], msg[29], gy))
                     del self.buffer[:at + 36]

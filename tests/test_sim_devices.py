@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 import serial
+from helpers import crc32_mpeg2_bitwise, recv_frames
 
 from firmware_sim.config import SimConfig
 from firmware_sim.devices import kvh, smc100
@@ -23,16 +24,6 @@ from firmware_sim.simulator import Simulator
 from northfinder.constants import DPH, earth_rate_enu_rad_s, normal_gravity_m_s2
 
 HEADER = b"\xfe\x81\xff\x55"
-
-
-def _crc_bitwise(data: bytes) -> int:
-    """Reference CRC-32/MPEG-2, one bit at a time, straight from PROTOCOLS.md §2."""
-    crc = 0xFFFFFFFF
-    for byte in data:
-        crc ^= byte << 24
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x04C11DB7) & 0xFFFFFFFF if crc & 0x80000000 else (crc << 1) & 0xFFFFFFFF
-    return crc
 
 
 # ---------------------------------------------------------------------------------------------
@@ -49,7 +40,7 @@ def test_crc_vectorized_matches_bitwise_reference():
     for width in (32, 7, 1, 0):  # even and odd lengths take different table paths
         rows = np.random.default_rng(width).integers(0, 256, (64, width), dtype=np.uint8)
         got = kvh.crc32_mpeg2_rows(rows)
-        assert [int(c) for c in got] == [_crc_bitwise(bytes(r)) for r in rows]
+        assert [int(c) for c in got] == [crc32_mpeg2_bitwise(bytes(r)) for r in rows]
 
 
 def test_kvh_messages_golden(golden):
@@ -522,12 +513,8 @@ def test_default_bench_can_accelerometer_over_slcan():
             first = bus.recv(timeout=5.0)  # the node powers on when the adapter's channel opens
             assert first is not None and (first.arbitration_id, bytes(first.data)) == (0x710, b"\x00")
             bus.send(can.Message(arbitration_id=0x000, data=[0x01, 0x10], is_extended_id=False))
-            z_ug = []
-            deadline = time.monotonic() + 10.0
-            while len(z_ug) < 50 and time.monotonic() < deadline:
-                msg = bus.recv(timeout=1.0)
-                if msg is not None and msg.arbitration_id == 0x290:
-                    z_ug.append(int.from_bytes(msg.data[:4], "little", signed=True))
+            z_ug = [int.from_bytes(msg.data[:4], "little", signed=True)
+                    for msg in recv_frames(bus, (0x290,), 50, timeout_s=10.0)]
         finally:
             bus.shutdown()
     finally:
@@ -622,12 +609,7 @@ def test_virtual_can_interface_for_in_process_clients():
         boot = client.recv(timeout=5.0)
         assert boot is not None and (boot.arbitration_id, bytes(boot.data)) == (0x710, b"\x00")
         client.send(can.Message(arbitration_id=0x000, data=[0x01, 0x00], is_extended_id=False))
-        ids = []
-        deadline = time.monotonic() + 10.0
-        while len(ids) < 20 and time.monotonic() < deadline:
-            msg = client.recv(timeout=1.0)
-            if msg is not None and msg.arbitration_id in (0x190, 0x290):
-                ids.append(msg.arbitration_id)
+        ids = [msg.arbitration_id for msg in recv_frames(client, (0x190, 0x290), 20, timeout_s=10.0)]
         assert len(ids) == 20 and ids[0] == 0x190  # TPDO1 then TPDO2, pair after pair
         assert ids == [0x190, 0x290] * 10
     finally:

@@ -20,6 +20,7 @@ import canopen
 import numpy as np
 import pytest
 import serial
+from helpers import crc32_mpeg2_bitwise, recv_frames
 
 from firmware_sim.config import SimConfig
 from firmware_sim.devices.apt import AptStage
@@ -163,24 +164,25 @@ def test_apt_stall_fault_trips_the_servo(apt_bench):
 # ---------------------------------------------------------------------------------------------
 # STIM: a client from TS1524 rev.31 Tables 5-20..5-23
 # ---------------------------------------------------------------------------------------------
-def _crc_bitwise(data: bytes) -> int:
-    crc = 0xFFFFFFFF
-    for byte in data:
-        crc ^= byte << 24
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x04C11DB7) & 0xFFFFFFFF if crc & 0x80000000 else (crc << 1) & 0xFFFFFFFF
-    return crc
-
-
 def _s24(b: bytes) -> int:
     v = int.from_bytes(b, "big")
     return v - (1 << 24) if v & 0x800000 else v
 
 
+def _first_0x93(raw: bytes) -> int:
+    """Where the first whole 0x93 datagram with a good CRC starts in `raw` (the stream may begin
+    mid-datagram)."""
+    start = raw.find(b"\x93")
+    while (crc32_mpeg2_bitwise(raw[start : start + 34] + b"\0\0")
+           != int.from_bytes(raw[start + 34 : start + 38], "big")):
+        start = raw.find(b"\x93", start + 1)
+    return start
+
+
 def _parse_0x93(dg: bytes) -> tuple[list[float], list[float], list[float], int, int]:
     """(gyro °, acc m/s, incl g, counter, statuses OR) of one 38-byte 0x93 datagram, CRC checked."""
     assert dg[0] == 0x93 and len(dg) == 38
-    assert int.from_bytes(dg[34:38], "big") == _crc_bitwise(dg[:34] + b"\0\0")  # 2 dummies, Table 5-22
+    assert int.from_bytes(dg[34:38], "big") == crc32_mpeg2_bitwise(dg[:34] + b"\0\0")  # 2 dummies, Table 5-22
     gyro = [_s24(dg[1 + 3 * i : 4 + 3 * i]) / 2**21 for i in range(3)]
     acc = [_s24(dg[11 + 3 * i : 14 + 3 * i]) / 2**22 for i in range(3)]
     incl = [_s24(dg[21 + 3 * i : 24 + 3 * i]) / 2**22 for i in range(3)]
@@ -201,10 +203,7 @@ def test_stim_datagrams_measure_the_world_and_service_mode_names_the_unit():
         deadline = time.monotonic() + 60
         while len(raw) < 38 * (n + 2) and time.monotonic() < deadline:
             raw += port.read(38 * 200)
-        start = raw.find(b"\x93")
-        while _crc_bitwise(raw[start : start + 34] + b"\0\0") != int.from_bytes(raw[start + 34 : start + 38],
-                                                                                 "big"):
-            start = raw.find(b"\x93", start + 1)
+        start = _first_0x93(raw)
         rows = [_parse_0x93(raw[start + 38 * i : start + 38 * (i + 1)]) for i in range(n)]
         counters = np.array([r[3] for r in rows])
         assert set(np.diff(counters) % 256) == {4}  # 2000/500 internal samples per datagram, no gap
@@ -315,10 +314,7 @@ def test_mixed_bench_apt_stim_cia410_on_the_simulator():
         while raw.count(b"\x93") < 50 and time.monotonic() < deadline:
             raw += imu.read(4096)
         imu.close()
-        start = raw.find(b"\x93")
-        while _crc_bitwise(raw[start : start + 34] + b"\0\0") != int.from_bytes(raw[start + 34 : start + 38],
-                                                                                 "big"):
-            start = raw.find(b"\x93", start + 1)
+        start = _first_0x93(raw)
         assert _parse_0x93(raw[start : start + 38])[4] == 0
         bus = can.Bus(interface="slcan", channel=ep["can"]["channel"], bitrate=ep["can"]["bitrate"],
                       sleep_after_open=0.0)
@@ -326,12 +322,8 @@ def test_mixed_bench_apt_stim_cia410_on_the_simulator():
             first = bus.recv(timeout=10.0)
             assert first is not None and (first.arbitration_id, bytes(first.data)) == (0x710, b"\x00")
             bus.send(can.Message(arbitration_id=0x000, data=[0x01, 0x10], is_extended_id=False))
-            slopes = []
-            deadline = time.monotonic() + 20
-            while len(slopes) < 20 and time.monotonic() < deadline:
-                msg = bus.recv(timeout=1.0)
-                if msg is not None and msg.arbitration_id == 0x190:
-                    slopes.append(struct.unpack("<hh", bytes(msg.data)))
+            slopes = [struct.unpack("<hh", bytes(msg.data))
+                      for msg in recv_frames(bus, (0x190,), 20, timeout_s=20)]
         finally:
             bus.shutdown()
         assert len(slopes) == 20

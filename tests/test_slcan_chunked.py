@@ -12,12 +12,12 @@ from __future__ import annotations
 import os
 import threading
 import time
-import tty
 
 import can
 import numpy as np
 import pytest
 from can.interfaces.slcan import slcanBus
+from helpers import load_tool
 
 from northfinder.transport import (
     SLCAN_STOCK_READS_BYTEWISE,
@@ -25,6 +25,8 @@ from northfinder.transport import (
     _release,
     open_can_bus,
 )
+
+SLCAN_SPEED = load_tool("slcan_speed")  # the pty + client + read counter the speed tool measures with
 
 
 def _recorded_stream(golden: dict, n_random: int = 600, seed: int = 7) -> tuple[bytes, int]:
@@ -65,25 +67,7 @@ def _pieces(stream: bytes, seed: int = 3) -> list[bytes]:
 
 def _receive(bus_class: type[slcanBus], pieces: list[bytes], n_frames: int) -> tuple[list[tuple], int]:
     """The frames `bus_class` receives from a pty fed `pieces`, and its pyserial read calls."""
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    bus = bus_class(channel=os.ttyname(slave), bitrate=500000, sleep_after_open=0)
-    reads = [0]
-    port_read = bus.serialPortOrig.read
-
-    def counting_read(size: int = 1) -> bytes:
-        reads[0] += 1
-        return port_read(size)
-
-    bus.serialPortOrig.read = counting_read
-    try:
-        os.set_blocking(master, False)
-        try:
-            os.read(master, 4096)  # C, S6, O the client sent on open
-        except BlockingIOError:
-            pass
-        os.set_blocking(master, True)
+    with SLCAN_SPEED.slcan_client_on_pty(bus_class) as (master, bus, reads):
 
         def write() -> None:
             for k, piece in enumerate(pieces):
@@ -101,10 +85,6 @@ def _receive(bus_class: type[slcanBus], pieces: list[bytes], n_frames: int) -> t
             frames.append((msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.dlc,
                            bytes(msg.data), msg.is_error_frame))
         writer.join(10)
-    finally:
-        bus.shutdown()
-        os.close(master)
-        os.close(slave)
     return frames, reads[0]
 
 

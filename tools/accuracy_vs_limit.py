@@ -115,6 +115,18 @@ AGREEMENT_BAND = (0.95, 1.05)
 """The shaded band of ratio_vs_limit.png: within ±5 % of 1 (Monte Carlo agrees with the limit)."""
 
 
+def _finish(fig, ax, title, path):
+    """Title, y grid and the legend outside the axes, saved to `path` at 120 dpi; the figure is returned
+    closed (its texts stay readable)."""
+    ax.set_title(title)
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return fig
+
+
 def plot_ratio_vs_limit(white, trials, path):
     """ratio_vs_limit.png: per cell σ_MC/σ_limit (filled) and reported/σ_MC (open), tilt 0° and 10°
     side by side; cells grouped by (n, T_total, ARW), latitude L within each group."""
@@ -138,13 +150,8 @@ def plot_ratio_vs_limit(white, trials, path):
                 transform=ax.get_xaxis_transform(), ha="center", va="top", fontsize=7)
     ax.set_xlabel("latitude L [°] in each cell group (n positions, T_total, ARW)", labelpad=44)
     ax.set_ylabel("ratio (1 = at the limit / honest σ)")
-    ax.set_title(f"Monte Carlo heading error against the white-noise limit ({trials} trials per cell)")
-    ax.grid(True, axis="y", alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return fig
+    title = f"Monte Carlo heading error against the white-noise limit ({trials} trials per cell)"
+    return _finish(fig, ax, title, path)
 
 
 DRIFT_KEYS = (("natural", "constant"), ("natural", "linear"), ("interleaved", "constant"),
@@ -169,13 +176,7 @@ def plot_drift(drift, trials, path):
     ax.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
     ax.yaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
     ax.tick_params(axis="y", which="minor", labelsize=7)
-    ax.set_title(f"Bias drift: plain vs drift-aware fit ({trials} trials per cell)")
-    ax.grid(True, axis="y", alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return fig
+    return _finish(fig, ax, f"Bias drift: plain vs drift-aware fit ({trials} trials per cell)", path)
 
 
 def main() -> None:

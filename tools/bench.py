@@ -191,33 +191,12 @@ def bench_slcan_client(bus_class: type | None = None, n_frames: int = 20_000) ->
     accelerometer link. `bus_class` None is python-can's stock client (one byte per pyserial call,
     python-can issue #2027); northfinder opens :class:`northfinder.transport.ChunkedSlcanBus`
     (tools/slcan_speed.py compares the two in more detail)."""
-    import tty
-
     from can.interfaces.slcan import slcanBus
+    from slcan_speed import receive  # tools/ is sys.path[0] when run as a script
 
     bus_class = bus_class or slcanBus
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
     line = b"t1908E803000030F8FFFF\r"
-    bus = bus_class(channel=os.ttyname(slave), bitrate=500000, sleep_after_open=0)
-    try:
-        with contextlib.suppress(BlockingIOError):
-            os.set_blocking(master, False)
-            os.read(master, 4096)  # the C / S6 / O the client sent on open
-        os.set_blocking(master, True)
-        writer = threading.Thread(target=lambda: os.write(master, line * n_frames), daemon=True)
-        got = 0
-        w0, c0 = time.perf_counter(), time.process_time()
-        writer.start()
-        while got < n_frames and bus.recv(timeout=5.0) is not None:
-            got += 1
-        wall, cpu = time.perf_counter() - w0, time.process_time() - c0
-        writer.join(5)
-    finally:
-        bus.shutdown()
-        os.close(master)
-        os.close(slave)
+    got, wall, cpu, _ = receive(bus_class, line * n_frames, n_frames, count_reads=False)
     label = "python-can slcan client" if bus_class is slcanBus else bus_class.__name__
     return Row(f"{label}, receive",
                f"{got / wall:,.0f} frames/s = {got / wall / 200:,.0f}× real time",

@@ -37,6 +37,11 @@ ROWS = {  # name: (stage, imu, tilt, grade)
 CLI = [sys.executable, "-m", "northfinder"]
 
 
+def model_flags(stage: str, imu: str, tilt: str, grade: str) -> list[str]:
+    """The model and grade flags, which firmware-sim and `northfinder find --simulate` both take."""
+    return ["--stage", stage, "--imu", imu, "--tilt", tilt, "--grade", grade]
+
+
 def check_lines(stage: str, imu: str, tilt: str, grade: str, tmp: Path) -> list[str]:
     """firmware-sim with these models, a bench.toml naming them, `northfinder check` → its lines."""
     sim = subprocess.Popen(
@@ -44,14 +49,7 @@ def check_lines(stage: str, imu: str, tilt: str, grade: str, tmp: Path) -> list[
             sys.executable,
             "-m",
             "firmware_sim",
-            "--stage",
-            stage,
-            "--imu",
-            imu,
-            "--tilt",
-            tilt,
-            "--grade",
-            grade,
+            *model_flags(stage, imu, tilt, grade),
             "--time-scale",
             "5",
         ],
@@ -85,14 +83,7 @@ def one_find(stage: str, imu: str, tilt: str, grade: str, args: argparse.Namespa
         *CLI,
         "find",
         "--simulate",
-        "--stage",
-        stage,
-        "--imu",
-        imu,
-        "--tilt",
-        tilt,
-        "--grade",
-        grade,
+        *model_flags(stage, imu, tilt, grade),
         "--positions",
         str(args.positions),
         "--dwell",

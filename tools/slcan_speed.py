@@ -21,6 +21,7 @@ import sys
 import threading
 import time
 import tty
+from collections.abc import Iterator
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -35,26 +36,48 @@ TPDO_LINES = b"t1908E803000030F8FFFF\r" + b"t290840420F00D0090707\r"
 REAL_TIME_FRAMES_S = 200.0
 
 
-def receive(bus_class: type[slcanBus], n_frames: int) -> tuple[int, float, float, int]:
-    """Frames received, wall s, CPU s and pyserial read calls for `n_frames` TPDO lines."""
+@contextlib.contextmanager
+def slcan_client_on_pty(bus_class: type[slcanBus], count_reads: bool = True
+                        ) -> Iterator[tuple[int, slcanBus, list[int]]]:
+    """`bus_class` opened on the slave end of a fresh raw pty, with what it sent on open (C, S6, O)
+    already read off the master end. Yields the master fd (blocking) to write the adapter's bytes
+    into, the bus, and a one-item list counting the bus's pyserial read calls (left at 0 when
+    `count_reads` is off: the counting wrapper costs a Python call per read). Shut and closed on exit."""
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
     bus = bus_class(channel=os.ttyname(slave), bitrate=500000, sleep_after_open=0)
     calls = [0]
-    port_read = bus.serialPortOrig.read
+    if count_reads:
+        port_read = bus.serialPortOrig.read
 
-    def counting_read(size: int = 1) -> bytes:
-        calls[0] += 1
-        return port_read(size)
+        def counting_read(size: int = 1) -> bytes:
+            calls[0] += 1
+            return port_read(size)
 
-    bus.serialPortOrig.read = counting_read
-    payload = TPDO_LINES * (n_frames // 2) + TPDO_LINES[:22] * (n_frames % 2)
+        bus.serialPortOrig.read = counting_read
     try:
         with contextlib.suppress(BlockingIOError):
             os.set_blocking(master, False)
             os.read(master, 4096)  # the C / S6 / O the client sent on open
         os.set_blocking(master, True)
+        yield master, bus, calls
+    finally:
+        bus.shutdown()
+        os.close(master)
+        os.close(slave)
+
+
+def tpdo_payload(n_frames: int) -> bytes:
+    """`n_frames` TPDO1/TPDO2 lines in turn, as firmware_sim's adapter sends them."""
+    return TPDO_LINES * (n_frames // 2) + TPDO_LINES[:22] * (n_frames % 2)
+
+
+def receive(bus_class: type[slcanBus], payload: bytes, n_frames: int, count_reads: bool = True
+            ) -> tuple[int, float, float, int]:
+    """Frames received, wall s, CPU s and pyserial read calls for `n_frames` slcan lines in
+    `payload`, written into the pty by a thread as fast as it takes them."""
+    with slcan_client_on_pty(bus_class, count_reads) as (master, bus, calls):
         writer = threading.Thread(target=lambda: os.write(master, payload), daemon=True)
         got = 0
         w0, c0 = time.perf_counter(), time.process_time()
@@ -63,17 +86,13 @@ def receive(bus_class: type[slcanBus], n_frames: int) -> tuple[int, float, float
             got += 1
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
         writer.join(5)
-    finally:
-        bus.shutdown()
-        os.close(master)
-        os.close(slave)
     return got, wall, cpu, calls[0]
 
 
 def measure(bus_class: type[slcanBus], n_frames: int, repeats: int) -> dict:
     best = None
     for _ in range(repeats):
-        got, wall, cpu, calls = receive(bus_class, n_frames)
+        got, wall, cpu, calls = receive(bus_class, tpdo_payload(n_frames), n_frames)
         if got != n_frames:
             raise SystemExit(f"{bus_class.__name__}: received {got} of {n_frames} frames")
         if best is None or wall < best["wall"]:

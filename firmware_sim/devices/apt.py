@@ -23,7 +23,7 @@ import math
 import struct
 from typing import Any
 
-from firmware_sim.devices.base import Device
+from firmware_sim.devices.base import PtyDevice
 from firmware_sim.pty import PtyPort
 
 log = logging.getLogger("firmware_sim.apt")
@@ -71,7 +71,7 @@ def packet(msg_id: int, data: bytes, dest: int = HOST, source: int = UNIT) -> by
     return struct.pack("<HHBB", msg_id, len(data), dest | 0x80, source) + data
 
 
-class AptStage(Device):
+class AptStage(PtyDevice):
     """A KDC101 + PRM1-Z8 on its own pty, driving `world.table`."""
 
     name = "turntable"
@@ -101,15 +101,6 @@ class AptStage(Device):
         self.bad_bytes = 0
 
     # -- Device surface -------------------------------------------------------------------------
-    def fileno(self) -> int | None:
-        return self.port.watch_fileno()
-
-    def endpoint(self) -> str:
-        return self.port.path
-
-    def close(self) -> None:
-        self.port.close()
-
     def on_readable(self, t_device_s: float) -> None:
         self._rx += self.port.read()
         while len(self._rx) >= 6:

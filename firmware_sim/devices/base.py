@@ -9,7 +9,10 @@ move). Devices never sleep and never read the wall clock: device time is the onl
 from __future__ import annotations
 
 import abc
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from firmware_sim.pty import PtyPort
 
 
 class Device(abc.ABC):
@@ -34,3 +37,19 @@ class Device(abc.ABC):
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release ports and buses; must be idempotent."""
+
+
+class PtyDevice(Device):
+    """A serial instrument on a pty (`self.port`): the loop watches the port while a client has it
+    open, clients connect to its slave path, and closing the device closes the port."""
+
+    port: PtyPort
+
+    def fileno(self) -> int | None:
+        return self.port.watch_fileno()
+
+    def endpoint(self) -> str:
+        return self.port.path
+
+    def close(self) -> None:
+        self.port.close()

@@ -24,6 +24,7 @@ reset-node command restarts the application (boot-up, counter 0) but not the sam
 
 from __future__ import annotations
 
+import abc
 import logging
 import math
 import struct
@@ -577,7 +578,67 @@ class NodeStats:
     sdo_ignored: int = 0  # requests not answered (stopped state, or the accel-sdo-silent fault)
 
 
-class CanAccelNode(Device):
+class CanopenNode(Device):
+    """What every emulated CANopen node on a python-can bus shares (CiA 301): the loop drives it
+    through `advance` (frames received up to `t`, then every frame due up to it), the NMT state
+    commands, and `close`. Subclasses set `bus`, `state` (None until powered on), `_closed`,
+    `_t_now_s`, `_grid_t0_s` and implement `_boot`, `_on_frame` and `_emit_until`."""
+
+    bus: can.BusABC
+    state: int | None
+    _closed: bool
+    _t_now_s: float
+    _grid_t0_s: float | None
+
+    @abc.abstractmethod
+    def _boot(self, t_s: float) -> None:
+        """Power-on or NMT reset node at `t_s`: boot-up heartbeat, then pre-operational."""
+
+    @abc.abstractmethod
+    def _on_frame(self, msg: can.Message, t_s: float) -> None:
+        """Act on one received frame at device time `t_s`."""
+
+    @abc.abstractmethod
+    def _emit_until(self, t_s: float) -> None:
+        """Send every frame due up to device time `t_s`."""
+
+    def _power_on(self, t_s: float) -> None:
+        """The first `advance`: the sample grid starts here, then the node boots."""
+        self._grid_t0_s = float(t_s)
+        self._boot(t_s)
+
+    def advance(self, t_device_s: float) -> None:
+        """Act on received NMT/SDO frames at `t_device_s`, then send every frame due up to it."""
+        if self._closed:
+            return
+        if self.state is None:
+            self._power_on(t_device_s)
+        self._t_now_s = float(t_device_s)
+        while (msg := self.bus.recv(timeout=0)) is not None:
+            self._on_frame(msg, t_device_s)
+        self._emit_until(t_device_s)
+
+    def close(self) -> None:
+        """Stop sending; the bus belongs to whoever made it (the simulator shuts it down)."""
+        self._closed = True
+
+    def _nmt_state_command(self, command: int, t_s: float) -> bool:
+        """Start, stop, enter pre-operational or reset node (CiA 301 NMT node control); False for any
+        other command."""
+        if command == NMT_START:
+            self.state = STATE_OPERATIONAL
+        elif command == NMT_STOP:
+            self.state = STATE_STOPPED
+        elif command == NMT_PRE_OPERATIONAL:
+            self.state = STATE_PRE_OPERATIONAL
+        elif command == NMT_RESET_NODE:
+            self._boot(t_s)
+        else:
+            return False
+        return True
+
+
+class CanAccelNode(CanopenNode):
     """A CANopen accelerometer on `bus`, measuring `world` through `accel_model`, with a CiA 301 SDO
     server over its object dictionary (PROTOCOLS.md §3.1).
 
@@ -652,21 +713,9 @@ class CanAccelNode(Device):
         """The node as a client sees it (the bus channel itself is the adapter's endpoint)."""
         return {"node_id": self.node_id}
 
-    def advance(self, t_device_s: float) -> None:
-        """Act on received NMT/SDO frames at `t_device_s`, then send every frame due up to it."""
-        if self._closed:
-            return
-        if self.state is None:
-            self.power_on_s = self._grid_t0_s = float(t_device_s)
-            self._boot(t_device_s)
-        self._t_now_s = float(t_device_s)
-        while (msg := self.bus.recv(timeout=0)) is not None:
-            self._on_frame(msg, t_device_s)
-        self._emit_until(t_device_s)
-
-    def close(self) -> None:
-        """Stop sending; the bus belongs to whoever made it (the simulator shuts it down)."""
-        self._closed = True
+    def _power_on(self, t_s: float) -> None:
+        self.power_on_s = float(t_s)
+        super()._power_on(t_s)
 
     # -- NMT ---------------------------------------------------------------------------------
     def _boot(self, t_s: float) -> None:
@@ -702,15 +751,7 @@ class CanAccelNode(Device):
         self.stats.nmt_received += 1
         # Everything due before the command arrived goes out under the old state.
         self._emit_until(t_s)
-        if command == NMT_START:
-            self.state = STATE_OPERATIONAL
-        elif command == NMT_STOP:
-            self.state = STATE_STOPPED
-        elif command == NMT_PRE_OPERATIONAL:
-            self.state = STATE_PRE_OPERATIONAL
-        elif command == NMT_RESET_NODE:
-            self._boot(t_s)
-        elif command == NMT_RESET_COMMUNICATION:
+        if not self._nmt_state_command(command, t_s) and command == NMT_RESET_COMMUNICATION:
             self._reset_communication(t_s)
         log.debug("node 0x%02X: NMT 0x%02X at %.6f s -> state 0x%02X", self.node_id, command, t_s, self.state)
 

@@ -23,17 +23,13 @@ from typing import Any
 import can
 import numpy as np
 
-from firmware_sim.devices.base import Device
 from firmware_sim.devices.canopen_accel import (
     NMT_ID,
-    NMT_PRE_OPERATIONAL,
-    NMT_RESET_NODE,
-    NMT_START,
-    NMT_STOP,
     STATE_BOOTUP,
     STATE_OPERATIONAL,
     STATE_PRE_OPERATIONAL,
     STATE_STOPPED,
+    CanopenNode,
     OdEntry,
     SdoServer,
     check_mapping_entry,
@@ -87,7 +83,7 @@ def build_od(node_id: int, event_ms: int = 10, resolution_mdeg: int = 1) -> dict
     return od
 
 
-class Cia410Node(Device):
+class Cia410Node(CanopenNode):
     """A CiA 410 inclinometer on `bus`, measuring `world` through `accel_model` (may be None)."""
 
     name = "tilt"
@@ -126,20 +122,6 @@ class Cia410Node(Device):
     def endpoint(self) -> dict[str, Any]:
         return {"node_id": self.node_id, "profile": "CiA 410"}
 
-    def close(self) -> None:
-        self._closed = True
-
-    def advance(self, t_device_s: float) -> None:
-        if self._closed:
-            return
-        if self.state is None:
-            self._grid_t0_s = float(t_device_s)
-            self._boot(t_device_s)
-        self._t_now_s = float(t_device_s)
-        while (msg := self.bus.recv(timeout=0)) is not None:
-            self._on_frame(msg, t_device_s)
-        self._emit_until(t_device_s)
-
     # -- CiA 301 ------------------------------------------------------------------------------
     def _boot(self, t_s: float) -> None:
         self._emit_until(t_s)
@@ -163,15 +145,7 @@ class Cia410Node(Device):
         if msg.arbitration_id != NMT_ID or msg.dlc != 2 or msg.data[1] not in (0, self.node_id):
             return
         self._emit_until(t_s)
-        command = msg.data[0]
-        if command == NMT_START:
-            self.state = STATE_OPERATIONAL
-        elif command == NMT_STOP:
-            self.state = STATE_STOPPED
-        elif command == NMT_PRE_OPERATIONAL:
-            self.state = STATE_PRE_OPERATIONAL
-        elif command == NMT_RESET_NODE:
-            self._boot(t_s)
+        self._nmt_state_command(msg.data[0], t_s)
 
     def _on_write(self, index: int, sub: int, value: Any) -> None:
         """The profile's rules for writes the dictionary allowed (ValueError → SDO abort)."""

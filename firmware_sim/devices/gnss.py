@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from firmware_sim.devices.base import Device
+from firmware_sim.devices.base import PtyDevice
 from firmware_sim.physics import earth
 from firmware_sim.pty import PtyPort
 
@@ -134,7 +134,7 @@ def _window(value: Any) -> tuple[float, float] | None:
     return start, dur
 
 
-class GnssReceiver(Device):
+class GnssReceiver(PtyDevice):
     """NMEA receiver of the antenna on a vehicle (or on the bench's platform) on its own pty.
 
     `world_or_trajectory`: a World (its platform's position if it has one — a VehicleTrajectory
@@ -203,12 +203,6 @@ class GnssReceiver(Device):
     # -- Device surface ---------------------------------------------------------------------
     def fileno(self) -> int | None:
         return None  # the receiver takes no commands
-
-    def endpoint(self) -> str:
-        return self.port.path
-
-    def close(self) -> None:
-        self.port.close()
 
     def advance(self, t_device_s: float) -> None:
         """Send every epoch k with k / rate ≤ t (never beyond it)."""

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from firmware_sim.devices.base import Device
+from firmware_sim.devices.base import PtyDevice
 from firmware_sim.pty import PtyPort
 
 log = logging.getLogger("firmware_sim.kvh")
@@ -266,7 +266,7 @@ replies and an INVALID line, as a second terminal sharing the line would cause."
 # ---------------------------------------------------------------------------------------------
 # The IMU
 # ---------------------------------------------------------------------------------------------
-class KvhImu(Device):
+class KvhImu(PtyDevice):
     """A format-A IMU on a pty. Samples k = 1, 2, … cover [(k−1)/rate, k/rate] from `epoch`.
 
     `gyro_model` / `accel_model` are the physics' error models; `make_models(rate_hz)` may be
@@ -370,14 +370,11 @@ class KvhImu(Device):
                     t_next_device_s=self.epoch_s + (self.emitted + 1) / self.rate_hz, rate_hz=self.rate_hz)
 
     # -- Device surface ---------------------------------------------------------------------
-    def fileno(self) -> int | None:
-        return self.port.watch_fileno()
-
     def endpoint(self) -> str:
-        return self._link_path or self.port.path
+        return self._link_path or super().endpoint()
 
     def close(self) -> None:
-        self.port.close()
+        super().close()
         if self._link_dir is not None:
             try:
                 os.unlink(self._link_path)  # type: ignore[arg-type]

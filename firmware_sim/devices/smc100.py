@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from firmware_sim import __version__
-from firmware_sim.devices.base import Device
+from firmware_sim.devices.base import PtyDevice
 from firmware_sim.pty import PtyPort
 
 log = logging.getLogger("firmware_sim.smc100")
@@ -325,7 +325,7 @@ def motion_time_s(distance: float, velocity: float, acceleration: float) -> floa
 # ---------------------------------------------------------------------------------------------
 # Controller
 # ---------------------------------------------------------------------------------------------
-class Smc100(Device):
+class Smc100(PtyDevice):
     """The controller on its own pty, driving `world.table`.
 
     `stall_move` (fault stage-stall=N): the N-th PA/PR since start jams half-way (the table
@@ -382,15 +382,6 @@ class Smc100(Device):
             rad["AC"], rad["VA"], rad["OH"])
 
     # -- Device surface ---------------------------------------------------------------------
-    def fileno(self) -> int | None:
-        return self.port.watch_fileno()
-
-    def endpoint(self) -> str:
-        return self.port.path
-
-    def close(self) -> None:
-        self.port.close()
-
     def on_readable(self, t_device_s: float) -> None:
         self._rx += self.port.read()
         while True:
@@ -635,21 +626,31 @@ class Smc100(Device):
 
     def _move(self, cmd: SmcCommand, t: float, *, relative: bool) -> None:
         """PA/PR (p. 41–42): "only accepted in READY state"; PR adds to the current target."""
-        if cmd.query:  # PA? and PR? both return the target position (p. 41, 42)
-            if self.target_deg is None:
-                self._error("D")
-            else:
-                self._reply("PR" if relative else "PA", format_number(self.target_deg))
-            return
-        value = cmd.value
+        # PA? and PR? both return the target position (p. 41, 42)
+        value = self._ready_value(cmd, cmd.query, "PR" if relative else "PA", self.target_deg)
         if value is None:
-            self._error("C")
-            return
-        if self._refused_here({RD}):
             return
         base = self.target_deg if self.target_deg is not None else self._encoder_deg(t)
         target = base + value if relative else value
         self._start_move(target, t)
+
+    def _ready_value(self, cmd: SmcCommand, query: bool, code: str,
+                     current_deg: float | None) -> float | None:
+        """The number a READY-only target command (PA, PR, SE) sets, or None once it is answered: a
+        query replies `current_deg` (error D while there is none), no number is error C, and another
+        state refuses it with that state's error."""
+        if query:
+            if current_deg is None:
+                self._error("D")
+            else:
+                self._reply(code, format_number(current_deg))
+            return None
+        if cmd.value is None:
+            self._error("C")
+            return None
+        if self._refused_here({RD}):
+            return None
+        return cmd.value
 
     def _start_move(self, target: float, t: float) -> None:
         lo, hi = self.limits_deg
@@ -670,17 +671,8 @@ class Smc100(Device):
 
     def _cmd_se(self, cmd: SmcCommand, t: float) -> None:
         """xxSEnn configures the target of a simultaneous start; a bare SE starts them all."""
-        if cmd.query or cmd.param == "":
-            if self.se_target_deg is None:
-                self._error("D")
-            else:
-                self._reply("SE", format_number(self.se_target_deg))
-            return
-        value = cmd.value
+        value = self._ready_value(cmd, cmd.query or cmd.param == "", "SE", self.se_target_deg)
         if value is None:
-            self._error("C")
-            return
-        if self._refused_here({RD}):
             return
         lo, hi = self.limits_deg
         if not lo <= value <= hi:

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from firmware_sim.devices.base import Device
+from firmware_sim.devices.base import PtyDevice
 from firmware_sim.pty import PtyPort
 
 log = logging.getLogger("firmware_sim.stim")
@@ -80,7 +80,7 @@ def pack24(values: np.ndarray) -> np.ndarray:
     return np.stack([v >> 16, (v >> 8) & 0xFF, v & 0xFF], axis=-1).astype(np.uint8).reshape(len(v), 9)
 
 
-class StimImu(Device):
+class StimImu(PtyDevice):
     """A STIM300 (or STIM318) on a pty. `product` names it in the identity listing."""
 
     name = "imu"
@@ -119,15 +119,6 @@ class StimImu(Device):
         self._rx = bytearray()
 
     # -- Device surface -------------------------------------------------------------------------
-    def fileno(self) -> int | None:
-        return self.port.watch_fileno()
-
-    def endpoint(self) -> str:
-        return self.port.path
-
-    def close(self) -> None:
-        self.port.close()
-
     def on_readable(self, t_device_s: float) -> None:
         self._rx += self.port.read()
         while (cut := self._rx.find(b"\r")) >= 0:
