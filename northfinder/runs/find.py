@@ -37,6 +37,13 @@ from northfinder.history import record_or_warn
 from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session_file
 from northfinder.runs.base import ProgressView, RunContext, default_out, guard, now_utc
 from northfinder.runs.base import discard_unstarted as base_discard_unstarted
+from northfinder.runs.find_motion_feed import (
+    FedEventLog,
+    MotionFeed,
+    feed_fit_result,
+    replay_feed,
+    start_live_feed,
+)
 from northfinder.sequencer import Interrupted, RunFailed, Sequencer, SequencerLimits
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 from northfinder.stopflag import StopFlag
@@ -295,7 +302,8 @@ def _sequence(ctx: RunContext, devices: tuple[Any, Any, Any], stop: StopFlag, pr
 
         limits = SequencerLimits.from_options(stage_speed_deg_s=cfg.turntable.speed_deg_s,
                                               stage_settle_s=cfg.turntable.settle_s, **seq_kwargs)
-        seq = Sequencer(tt, imu, acc, cfg.run, limits, allow_home=cfg.turntable.allow_home, rundir=ctx.rundir,
+        events = FedEventLog(ctx.rundir, ctx.motion_feed) if ctx.motion_feed is not None else ctx.rundir
+        seq = Sequencer(tt, imu, acc, cfg.run, limits, allow_home=cfg.turntable.allow_home, rundir=events,
                         on_progress=on_progress, stop_flag=stop, skip=skip or set())
         try:
             return previous + seq.run()
@@ -336,6 +344,10 @@ def measure(
     with stop.installed(), open_bench(cfg, rundir, can_kwargs) as (tt, imu, acc):
         acc_info = _configure(cfg, imu, acc, rundir)
         ctx.event(_start_event(ctx, imu, acc_info, sim_info))
+        # the per-sample fit fed from the stream as it arrives (memory flat in run length); a resumed
+        # session's fit joins sessions from the logs (find_motion)
+        one_session_fit = rundir.session == 1 and cfg.run.plan in MOTION_KINDS
+        ctx.motion_feed = start_live_feed(imu) if one_session_fit else None
         positions = _sequence(ctx, (tt, imu, acc), stop, list(previous or []), skip, seq_kwargs)
     result = _result(ctx, positions, complete=True)
     ctx.finish(result)
@@ -348,15 +360,22 @@ def _result(ctx: RunContext, positions: Sequence[PositionMeans], complete: bool)
     return compute_result(positions, cfg.site.latitude_deg, cfg.estimator.method, height_m=cfg.site.height_m,
                           truth=ctx.truth, complete=complete, positions_planned=cfg.run.positions,
                           faults=faults_summary(events), plan=cfg.run.plan,
-                          motion=_motion(ctx.rundir, events, cfg.site.height_m),
+                          motion=_motion(ctx.rundir, events, cfg.site.height_m, feed=ctx.motion_feed),
                           prediction=(ctx.start_extra or {}).get("plan_prediction"))
 
 
-def _motion(rd: RunDir, events: Sequence[dict[str, Any]], height_m: float, block: Any = None):
-    """The per-sample fit on this run's raw log, for compute_result (same call live and in replay;
-    replay hands over the block it has decoded already)."""
+def _motion(rd: RunDir, events: Sequence[dict[str, Any]], height_m: float, block: Any = None,
+            feed: MotionFeed | None = None, replay_rate_hz: float | None = None):
+    """The per-sample fit for compute_result. A one-session run's comes from a MotionFeed
+    (runs.find_motion_feed): live `feed` fed from the IMU's tap, in replay (`replay_rate_hz` given)
+    one fed from the decoded `block` — the same numbers. Otherwise (a resumed run, a model that
+    cannot tap) from this run's raw log (find_motion; replay hands over the block it has decoded)."""
     from northfinder.runs.find_motion import motion_fit_result
 
+    if feed is not None:
+        return lambda sol: feed_fit_result(feed, events, sol, height_m)
+    if replay_rate_hz is not None and block is not None:
+        return lambda sol: feed_fit_result(replay_feed(block, events, replay_rate_hz), events, sol, height_m)
     return lambda sol: motion_fit_result(rd, events, sol, height_m, block)
 
 
@@ -767,7 +786,8 @@ def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
             positions_planned=planned,
             faults=faults_summary(events),
             plan=start.get("plan", "positions"),
-            motion=_motion(rd, events, start.get("height_m", 0.0), block if session == 1 else None),
+            motion=_motion(rd, events, start.get("height_m", 0.0), block if session == 1 else None,
+                           replay_rate_hz=rate_hz if session == 1 else None),
             prediction=start.get("plan_prediction"),
         )
     return ReplayOutcome(result, complete, len(positions), planned, positions)
