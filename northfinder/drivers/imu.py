@@ -77,8 +77,9 @@ class Imu(StreamReader):
         transport: _ByteTransport | None = None,
         link_timeout_s: float = 1.0,
     ) -> None:
-        """`link_timeout_s`: host seconds without a byte (while streaming) after which the stream
-        counts as paused (see :attr:`stall_indices`). Generous on purpose: a USB-serial adapter may
+        """`link_timeout_s`: host seconds the port was seen empty (while streaming; empty reads, so a
+        reader starved of CPU meanwhile does not count) after which the stream counts as paused (see
+        :attr:`stall_indices`). Generous on purpose: a USB-serial adapter may
         hold bytes back for a few hundred ms and then burst them, which loses nothing (the
         sequence counter decides that); only a silence this long can hide 128·k lost samples."""
         super().__init__(port, timeout_s)
