@@ -386,12 +386,36 @@ def save_partial(ctx: RunContext, positions: list[PositionMeans]) -> None:
         ctx.finish(_result(ctx, positions, complete=False))
 
 
+def pace_note(events: Sequence[dict[str, Any]]) -> str | None:
+    """One line when a simulated run went faster than this host keeps up with: firmware-sim drops
+    what its client leaves unread for a second of wall time, so at a time scale above 1 with no
+    fault injected, samples lost on a link (IMU bytes, CAN frames) mean the host fell behind — not
+    the bench. None otherwise."""
+    start = next((e for e in events if e.get("event") == "start"), None)
+    sim = (start or {}).get("simulate") or {}
+    scale = float(sim.get("time_scale") or 1.0)
+    if scale <= 1.0 or sim.get("faults"):
+        return None
+    stats = [e for e in events if e.get("event") == "stats"]
+    imu = sum(int(e.get("imu", {}).get("lost_samples", 0)) for e in stats)
+    crc = sum(int(e.get("imu", {}).get("bad_crc", 0)) for e in stats)
+    acc = sum(int(e.get("accel", {}).get("lost_samples", 0)) for e in stats)
+    if not (imu or crc or acc):
+        return None
+    return (f"at --time-scale {scale:g} this host did not keep up: the IMU link lost {imu:,} samples "
+            f"({crc:,} bad CRCs), the accelerometer {acc:,} (firmware-sim drops what is left unread for "
+            "1 s of wall time); run at a lower --time-scale")
+
+
 def failed(ctx: RunContext, fail: RunFailed, positions: list[PositionMeans]) -> None:
-    """A fault the run could not get past: save what was measured, then one line saying so."""
+    """A fault the run could not get past: save what was measured, then one line saying so (and
+    when a simulated run outran this host, that too)."""
     save_partial(ctx, positions)
     rd = ctx.rundir.path
+    note = pace_note(ctx.rundir.events())
     raise RunFailed(
-        f"{fail}; {len(positions)} of {ctx.cfg.run.positions} positions measured and saved in {rd} "
+        f"{fail}; {note + '; ' if note else ''}"
+        f"{len(positions)} of {ctx.cfg.run.positions} positions measured and saved in {rd} "
         f"(northfinder replay {rd}; finish it with northfinder find --resume {rd})",
         positions,
     )
