@@ -153,3 +153,22 @@ def test_a_refused_stream_makes_the_fit_unavailable_with_its_reason():
     assert feed.why_not is not None and "increase" in feed.why_not
     events = [{"event": "start"}] + [{"event": "position"}] * 3
     assert F.feed_fit_result(feed, events, None) == {"available": False, "reason": feed.why_not}
+
+
+def test_pace_note_names_the_time_scale_only_when_a_clean_simulated_link_lost_samples():
+    from northfinder.runs.find import pace_note
+
+    def events(scale, faults=(), imu_lost=0, crc=0, acc_lost=0, simulate=True):
+        sim = {"time_scale": scale, "faults": list(faults)} if simulate else None
+        start = {"event": "start", "simulate": sim}
+        stats = {"event": "stats", "imu": {"lost_samples": imu_lost, "bad_crc": crc},
+                 "accel": {"lost_samples": acc_lost}}
+        return [start, stats]
+
+    note = pace_note(events(80, imu_lost=5559, crc=74))
+    assert note is not None and "--time-scale 80" in note and "5,559" in note and "74 bad CRCs" in note
+    assert "accelerometer 12" in pace_note(events(50, acc_lost=12))
+    assert pace_note(events(80)) is None  # lossless
+    assert pace_note(events(1, imu_lost=3)) is None  # real time: the link, not the host's pace
+    assert pace_note(events(80, faults=["imu-drop-byte-rate=0.001"], imu_lost=3)) is None  # asked for
+    assert pace_note(events(80, imu_lost=3, simulate=False)) is None  # a real bench
