@@ -159,3 +159,40 @@ def test_a_silence_longer_than_the_link_timeout_is_a_pause(pty_pair):
         imu.read(200, timeout_s=5)
         stalls = imu.stall_indices
     assert stalls == [200]
+
+
+class _StarvedTransport:
+    """Frames in two halves with the reader kept away 1.5 s between them (as a loaded host or the
+    GIL does): one empty read, then a read that only returns after 1.5 s — the second half was
+    waiting at the port all along, which the reader never saw empty for that long."""
+
+    timeout_s = 0.05
+
+    def __init__(self, halves: list[bytes]) -> None:
+        self.reads = [halves[0], b"", "starve", halves[1]]
+
+    def write(self, data: bytes) -> None:
+        raise AssertionError(f"unexpected write {data!r}")
+
+    def read_available(self, max_bytes: int = 1 << 16) -> bytes:
+        if not self.reads:
+            time.sleep(0.01)
+            return b""
+        item = self.reads.pop(0)
+        if item == "starve":
+            time.sleep(1.5)
+            return self.reads.pop(0)
+        return item
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_reader_kept_off_the_cpu_is_no_pause():
+    data, _, _ = _stream(400, 0x77)
+    half = 200 * kvh.FRAME_SIZE
+    with Imu("starved://kvh", transport=_StarvedTransport([data[:half], data[half:]]), wait_for_data=False,
+             link_timeout_s=1.0) as imu:
+        block = imu.read(400, timeout_s=10)
+        stalls = imu.stall_indices
+    assert stalls == [] and block.lost_samples == 0

@@ -140,6 +140,9 @@ def run(args: argparse.Namespace) -> int:
         threading.Thread(target=_preload_matplotlib, name="preload-matplotlib", daemon=True).start()
     result, rundir, label = find_run.run_find(request(args), progress=ProgressView)
     print_summary(result, run_dir=rundir.path)
+    note = find_run.pace_note(rundir.events())
+    if note:
+        print(f"note: {note}", file=sys.stderr)
     print(f"wall time {time.monotonic() - t_wall:.1f} s ({label})", file=sys.stderr)
     return 0
 

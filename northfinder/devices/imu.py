@@ -167,6 +167,23 @@ class InertialStream(ABC):
         """First sample index after each pause of unknown length."""
         return []
 
+    def start_tap(self) -> bool:
+        """Keep every sample decoded from now on, read or not, for :meth:`take_tapped` (a run's
+        per-sample fit sees the whole stream, not the pieces the sequencer reads). False when the
+        model cannot: the run then decodes its raw log."""
+        return False
+
+    @property
+    def first_sample_index(self) -> int | None:
+        """The device index of the first sample decoded since the link opened (None: none yet, or
+        the model does not say)."""
+        return None
+
+    def take_tapped(self) -> ImuBlock | None:
+        """The samples decoded since the last call (after start_tap), in stream order and exactly
+        as the model's decoder gives them from the raw log; None when the model does not tap."""
+        return None
+
     def reopen(self, timeout_s: float) -> int:
         """Re-open a vanished link; returns the attempts it took (DeviceError if not within timeout_s)."""
         raise DeviceError(ROLE, self.port, "this IMU model cannot re-open its link")

@@ -38,6 +38,10 @@ def wait_until(
         cond.wait(remaining)
 
 
+EMPTY_READ_MAX_S = 0.05
+"""What one empty read counts toward a silence at most when the transport does not say its time-out."""
+
+
 class StreamReader:
     """Background reader over a byte transport; a context manager."""
 
@@ -54,7 +58,8 @@ class StreamReader:
 
     def _on_bytes(self, data: bytes, idle_s: float) -> None:
         """New bytes from the port, called with `_cond` held. `idle_s`: host seconds the port was
-        silent before them (0 when bytes kept coming)."""
+        seen empty before them (the empty reads' durations, each at most the read's time-out; 0 when
+        bytes kept coming)."""
         raise NotImplementedError
 
     # -- the reader thread -------------------------------------------------------------------
@@ -72,9 +77,13 @@ class StreamReader:
 
     def _read_loop(self) -> None:
         stop = self._stop  # a reconnect replaces the event; this thread answers to its own
-        last_data = time.monotonic()
-        silent = False
+        # Silence is what the port showed, not host time gone by: each empty read adds its own
+        # duration, at most the read's time-out. A reader kept off the CPU (a loaded host, the GIL)
+        # saw no empty port meanwhile, and the bytes waiting for it are no pause (issue 27).
+        empty_read_max_s = float(getattr(self._t, "timeout_s", None) or EMPTY_READ_MAX_S)
+        silent_s = 0.0
         while not stop.is_set():
+            t_read = time.monotonic()
             try:
                 data = self._t.read_available()
             except BaseException as exc:  # noqa: BLE001 - handed to the reading thread
@@ -82,12 +91,10 @@ class StreamReader:
                     self._error = exc
                     self._cond.notify_all()
                 return
-            now = time.monotonic()
             if not data:
-                silent = True
+                silent_s += min(time.monotonic() - t_read, empty_read_max_s)
                 continue
-            idle_s = now - last_data if silent else 0.0
-            last_data, silent = now, False
+            idle_s, silent_s = silent_s, 0.0
             with self._cond:
                 self._on_bytes(data, idle_s)
                 self._cond.notify_all()

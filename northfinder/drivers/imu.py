@@ -77,8 +77,9 @@ class Imu(StreamReader):
         transport: _ByteTransport | None = None,
         link_timeout_s: float = 1.0,
     ) -> None:
-        """`link_timeout_s`: host seconds without a byte (while streaming) after which the stream
-        counts as paused (see :attr:`stall_indices`). Generous on purpose: a USB-serial adapter may
+        """`link_timeout_s`: host seconds the port was seen empty (while streaming; empty reads, so a
+        reader starved of CPU meanwhile does not count) after which the stream counts as paused (see
+        :attr:`stall_indices`). Generous on purpose: a USB-serial adapter may
         hold bytes back for a few hundred ms and then burst them, which loses nothing (the
         sequence counter decides that); only a silence this long can hide 128·k lost samples."""
         super().__init__(port, timeout_s)
@@ -110,6 +111,8 @@ class Imu(StreamReader):
         self._decoder = KvhDecoder()
         self._pending: list[tuple[np.ndarray, np.ndarray]] = []
         self._pending_n = 0
+        self._tap: list[tuple[np.ndarray, np.ndarray]] | None = None  # every decoded chunk (start_tap)
+        self._first_index: int | None = None
         self._config_mode = False
         self._text = bytearray()
         self._listening = False  # collect text in `_text` (config mode, and while awaiting an echo)
@@ -212,6 +215,10 @@ class Imu(StreamReader):
             self._unknown_seen = len(unknown)
         if len(out):
             index, frames = out.sample_index, out.frames
+            if self._first_index is None:
+                self._first_index = int(index[0])
+            if self._tap is not None:  # before the discard: the tap sees what a decode of imu.raw sees
+                self._tap.append((index, frames))
             if self._discard_next:
                 k = min(self._discard_next, len(index))
                 self._discard_next -= k
@@ -297,6 +304,30 @@ class Imu(StreamReader):
         frames = np.concatenate([c[1] for c in taken])
         block = frames_to_block(index, frames, rate, fmt, units)
         return replace(block, unknown_gaps=gaps) if gaps else block
+
+    def start_tap(self) -> bool:
+        """From now on keep every decoded sample, read or not, for :meth:`take_tapped`."""
+        with self._cond:
+            self._tap = []
+        return True
+
+    @property
+    def first_sample_index(self) -> int | None:
+        with self._cond:
+            return self._first_index
+
+    def take_tapped(self) -> ImuBlock | None:
+        """Every sample decoded since the last call (or start_tap), in stream order, as a decode of
+        imu.raw gives them (the same conversion: bit-identical); None without start_tap."""
+        with self._cond:
+            if self._tap is None:
+                return None
+            chunks, self._tap = self._tap, []
+            rate, fmt, units = self.rate_hz, self.rot_format, self.rot_units
+        if not chunks:
+            return frames_to_block(np.zeros(0, np.int64), np.zeros(0, kvh.FRAME_DTYPE), rate, fmt, units)
+        return frames_to_block(np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks]),
+                               rate, fmt, units)
 
     def discard_pending(self) -> int:
         """Drop samples decoded but not read yet (e.g. those from before a move); returns how many."""

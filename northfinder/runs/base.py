@@ -46,6 +46,8 @@ class RunContext:
     on_event: Callable[[dict[str, Any]], None] | None = None
     start_extra: dict[str, Any] | None = None
     """Extra fields of the start event (e.g. find's plan prediction)."""
+    motion_feed: Any = None
+    """find: the per-sample fit fed live (runs.find_motion_feed), None when the result decodes imu.raw."""
 
     def start(self, config: dict[str, Any]) -> None:
         """Write config.json (the first session only: a resumed run keeps its saved config)."""

@@ -38,6 +38,13 @@ from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session
 from northfinder.runkinds import Replayed
 from northfinder.runs.base import ProgressView, RunContext, default_out, guard, now_utc
 from northfinder.runs.base import discard_unstarted as base_discard_unstarted
+from northfinder.runs.find_motion_feed import (
+    FedEventLog,
+    MotionFeed,
+    feed_fit_result,
+    replay_feed,
+    start_live_feed,
+)
 from northfinder.sequencer import Interrupted, RunFailed, Sequencer, SequencerLimits
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 from northfinder.stopflag import StopFlag
@@ -324,7 +331,8 @@ def _sequence(ctx: RunContext, devices: tuple[Any, Any, Any], stop: StopFlag, pr
 
         limits = SequencerLimits.from_options(stage_speed_deg_s=cfg.turntable.speed_deg_s,
                                               stage_settle_s=cfg.turntable.settle_s, **seq_kwargs)
-        seq = Sequencer(tt, imu, acc, cfg.run, limits, allow_home=cfg.turntable.allow_home, rundir=ctx.rundir,
+        events = FedEventLog(ctx.rundir, ctx.motion_feed) if ctx.motion_feed is not None else ctx.rundir
+        seq = Sequencer(tt, imu, acc, cfg.run, limits, allow_home=cfg.turntable.allow_home, rundir=events,
                         on_progress=on_progress, stop_flag=stop, skip=skip or set())
         try:
             return previous + seq.run()
@@ -365,6 +373,10 @@ def measure(
     with stop.installed(), open_bench(cfg, rundir, can_kwargs) as (tt, imu, acc):
         acc_info = _configure(cfg, imu, acc, rundir)
         ctx.event(_start_event(ctx, imu, acc_info, sim_info, tt.identity()))
+        # the per-sample fit fed from the stream as it arrives (memory flat in run length); a resumed
+        # session's fit joins sessions from the logs (find_motion)
+        one_session_fit = rundir.session == 1 and cfg.run.plan in MOTION_KINDS
+        ctx.motion_feed = start_live_feed(imu) if one_session_fit else None
         positions = _sequence(ctx, (tt, imu, acc), stop, list(previous or []), skip, seq_kwargs)
     result = _result(ctx, positions, complete=True)
     ctx.finish(result)
@@ -377,15 +389,22 @@ def _result(ctx: RunContext, positions: Sequence[PositionMeans], complete: bool)
     return compute_result(positions, cfg.site.latitude_deg, cfg.estimator.method, height_m=cfg.site.height_m,
                           truth=ctx.truth, complete=complete, positions_planned=cfg.run.positions,
                           faults=faults_summary(events), plan=cfg.run.plan, devices=devices_summary(events),
-                          motion=_motion(ctx.rundir, events, cfg.site.height_m),
+                          motion=_motion(ctx.rundir, events, cfg.site.height_m, feed=ctx.motion_feed),
                           prediction=(ctx.start_extra or {}).get("plan_prediction"))
 
 
-def _motion(rd: RunDir, events: Sequence[dict[str, Any]], height_m: float, block: Any = None):
-    """The per-sample fit on this run's raw log, for compute_result (same call live and in replay;
-    replay hands over the block it has decoded already)."""
+def _motion(rd: RunDir, events: Sequence[dict[str, Any]], height_m: float, block: Any = None,
+            feed: MotionFeed | None = None, replay_rate_hz: float | None = None):
+    """The per-sample fit for compute_result. A one-session run's comes from a MotionFeed
+    (runs.find_motion_feed): live `feed` fed from the IMU's tap, in replay (`replay_rate_hz` given)
+    one fed from the decoded `block` — the same numbers. Otherwise (a resumed run, a model that
+    cannot tap) from this run's raw log (find_motion; replay hands over the block it has decoded)."""
     from northfinder.runs.find_motion import motion_fit_result
 
+    if feed is not None:
+        return lambda sol: feed_fit_result(feed, events, sol, height_m)
+    if replay_rate_hz is not None and block is not None:
+        return lambda sol: feed_fit_result(replay_feed(block, events, replay_rate_hz), events, sol, height_m)
     return lambda sol: motion_fit_result(rd, events, sol, height_m, block)
 
 
@@ -396,12 +415,36 @@ def save_partial(ctx: RunContext, positions: list[PositionMeans]) -> None:
         ctx.finish(_result(ctx, positions, complete=False))
 
 
+def pace_note(events: Sequence[dict[str, Any]]) -> str | None:
+    """One line when a simulated run went faster than this host keeps up with: firmware-sim drops
+    what its client leaves unread for a second of wall time, so at a time scale above 1 with no
+    fault injected, samples lost on a link (IMU bytes, CAN frames) mean the host fell behind — not
+    the bench. None otherwise."""
+    start = next((e for e in events if e.get("event") == "start"), None)
+    sim = (start or {}).get("simulate") or {}
+    scale = float(sim.get("time_scale") or 1.0)
+    if scale <= 1.0 or sim.get("faults"):
+        return None
+    stats = [e for e in events if e.get("event") == "stats"]
+    imu = sum(int(e.get("imu", {}).get("lost_samples", 0)) for e in stats)
+    crc = sum(int(e.get("imu", {}).get("bad_crc", 0)) for e in stats)
+    acc = sum(int(e.get("accel", {}).get("lost_samples", 0)) for e in stats)
+    if not (imu or crc or acc):
+        return None
+    return (f"at --time-scale {scale:g} this host did not keep up: the IMU link lost {imu:,} samples "
+            f"({crc:,} bad CRCs), the accelerometer {acc:,} (firmware-sim drops what is left unread for "
+            "1 s of wall time); run at a lower --time-scale")
+
+
 def failed(ctx: RunContext, fail: RunFailed, positions: list[PositionMeans]) -> None:
-    """A fault the run could not get past: save what was measured, then one line saying so."""
+    """A fault the run could not get past: save what was measured, then one line saying so (and
+    when a simulated run outran this host, that too)."""
     save_partial(ctx, positions)
     rd = ctx.rundir.path
+    note = pace_note(ctx.rundir.events())
     raise RunFailed(
-        f"{fail}; {len(positions)} of {ctx.cfg.run.positions} positions measured and saved in {rd} "
+        f"{fail}; {note + '; ' if note else ''}"
+        f"{len(positions)} of {ctx.cfg.run.positions} positions measured and saved in {rd} "
         f"(northfinder replay {rd}; finish it with northfinder find --resume {rd})",
         positions,
     )
@@ -814,7 +857,8 @@ def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
             faults=faults_summary(events),
             devices=devices_summary(events),
             plan=start.get("plan", "positions"),
-            motion=_motion(rd, events, start.get("height_m", 0.0), block if session == 1 else None),
+            motion=_motion(rd, events, start.get("height_m", 0.0), block if session == 1 else None,
+                           replay_rate_hz=rate_hz if session == 1 else None),
             prediction=start.get("plan_prediction"),
         )
     return ReplayOutcome(result, complete, len(positions), planned, positions)
