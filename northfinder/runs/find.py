@@ -389,8 +389,25 @@ def _result(ctx: RunContext, positions: Sequence[PositionMeans], complete: bool)
     return compute_result(positions, cfg.site.latitude_deg, cfg.estimator.method, height_m=cfg.site.height_m,
                           truth=ctx.truth, complete=complete, positions_planned=cfg.run.positions,
                           faults=faults_summary(events), plan=cfg.run.plan, devices=devices_summary(events),
-                          motion=_motion(ctx.rundir, events, cfg.site.height_m, feed=ctx.motion_feed),
+                          motion=_live_motion(ctx, events),
                           prediction=(ctx.start_extra or {}).get("plan_prediction"))
+
+
+def _live_motion(ctx: RunContext, events: Sequence[dict[str, Any]]):
+    """The live run's per-sample fit: from the IMU's tap; a one-session run on a model that cannot
+    tap its stream takes it as its replay will, from the decoded imu.raw through the same feed (so
+    the two are bit-identical); a resumed run from the logs (find_motion)."""
+    height_m = ctx.cfg.site.height_m
+    if ctx.motion_feed is not None or ctx.rundir.session != 1:
+        return _motion(ctx.rundir, events, height_m, feed=ctx.motion_feed)
+
+    def from_log(sol: Any) -> Any:
+        start = next(e for e in events if e.get("event") == "start")
+        block, _ = _decode_session(ctx.rundir, 1, start)
+        rate_hz = float(start["imu"]["rate_hz"])
+        return _motion(ctx.rundir, events, height_m, block, replay_rate_hz=rate_hz)(sol)
+
+    return from_log
 
 
 def _motion(rd: RunDir, events: Sequence[dict[str, Any]], height_m: float, block: Any = None,
