@@ -31,36 +31,6 @@ import numpy as np
 
 DEG = math.pi / 180.0
 DPH = DEG / 3600.0
-
-_lfilter = None
-"""scipy.signal.lfilter once loaded (:func:`load_filters`); scipy.signal takes 0.9 s to import on a
-quiet 2-core host, 3-5 s on a loaded one."""
-SMALL_BLOCK_ROWS = 4096
-"""Blocks up to this many samples are filtered by :func:`_first_order` until scipy is loaded (the
-simulator's first ticks); longer ones wait for the import."""
-
-
-def load_filters():
-    """Import scipy.signal's lfilter (the simulator does it in a thread at start-up)."""
-    global _lfilter
-    if _lfilter is None:
-        from scipy.signal import lfilter
-
-        _lfilter = lfilter
-    return _lfilter
-
-
-def _first_order(x: np.ndarray, phi: float, zi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """lfilter([1], [1, −φ], x, axis=0, zi=zi) computed here, bit for bit: its transposed direct
-    form for this filter is y[n] = 1·x[n] + z, z = 0·x[n] − (−φ)·y[n] — each step one product and
-    one sum in double, the same operations (tests/test_sim_physics.py compares). Per-sample Python:
-    for the few small blocks before scipy.signal is loaded."""
-    y = np.empty_like(x)
-    z = np.array(zi[0], dtype=float)
-    for n in range(x.shape[0]):
-        y[n] = x[n] + z
-        z = phi * y[n]
-    return y, z[None, :]
 G0_M_S2 = 9.80665
 UG_M_S2 = 1e-6 * G0_M_S2
 
@@ -355,10 +325,9 @@ class _ErrorModel:
         gm_in = self.rng["gauss_markov"].standard_normal((n, 3)) * (
             self.gm_sigma * math.sqrt(1.0 - self.phi**2)
         )
-        if _lfilter is None and n <= SMALL_BLOCK_ROWS:  # scipy.signal not loaded yet: the same numbers
-            gm, self._gm_zi = _first_order(gm_in, self.phi, self._gm_zi)
-        else:
-            gm, self._gm_zi = load_filters()([1.0], [1.0, -self.phi], gm_in, axis=0, zi=self._gm_zi)
+        from scipy.signal import lfilter  # lazy: scipy.signal costs ~0.5-2 s at start-up
+
+        gm, self._gm_zi = lfilter([1.0], [1.0, -self.phi], gm_in, axis=0, zi=self._gm_zi)
         steps = self.rng["random_walk"].standard_normal((n, 3)) * self.rw_sigma
         rw = np.cumsum(np.concatenate([self._rw[None, :], steps]), axis=0)[1:]
         self._rw = rw[-1].copy() if n else self._rw
