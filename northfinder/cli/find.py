@@ -13,7 +13,9 @@ SIGINT/SIGTERM (saved).
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
+import textwrap
 import threading
 import time
 
@@ -141,8 +143,10 @@ def run(args: argparse.Namespace) -> int:
     result, rundir, label = find_run.run_find(request(args), progress=ProgressView)
     print_summary(result, run_dir=rundir.path)
     note = find_run.pace_note(rundir.events())
-    if note:
-        print(f"note: {note}", file=sys.stderr)
+    if note:  # wrapped to a terminal's width (at 80 columns too); one line into a pipe or file
+        width = shutil.get_terminal_size().columns if sys.stderr.isatty() else 0
+        print(textwrap.fill(f"note: {note}", width, subsequent_indent="  ") if width else f"note: {note}",
+              file=sys.stderr)
     print(f"wall time {time.monotonic() - t_wall:.1f} s ({label})", file=sys.stderr)
     return 0
 
