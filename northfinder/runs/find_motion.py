@@ -79,8 +79,19 @@ def motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol: Heading
         fit, kept, disturbed = fit_motion_screened(alpha, omega, gyro[:, cols], axes, terms=RUN_TERMS)
     except InputError as exc:
         return {"available": False, "reason": str(exc)}
-    heading, std, methods = heading_with_gyro_fit(sol, fit, height_m=height_m)
     rate_hz = float(next(e for e in events if e.get("event") == "start")["imu"]["rate_hz"])
+    samples = {**counts, "stretches_disturbed": disturbed,
+               "motion": int(np.count_nonzero(kept & (omega != 0))),
+               "used_device_s": float(np.count_nonzero(kept)) / rate_hz}
+    return gyro_fit_summary(fit, axes, sol, height_m, samples)
+
+
+def gyro_fit_summary(fit: Any, axes: Sequence[str], sol: HeadingSolution, height_m: float,
+                     samples: dict[str, Any], extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """result.json's `motion_fit` of a per-sample gyro fit (one session, several, or fed as the
+    samples arrived): the heading from it, its terms and what it used; `extra` goes before the
+    residuals (the sessions of a resumed run)."""
+    heading, std, methods = heading_with_gyro_fit(sol, fit, height_m=height_m)
     return {
         "available": True,
         "heading_deg": heading,
@@ -89,9 +100,8 @@ def motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol: Heading
         "terms": list(RUN_TERMS),
         "misalignment_dph_per_dps": {ax: float(fit.coef(f"d_{ax}")[0]) for ax in axes},
         "wobble_dph_per_dps": {k: float(fit.coef(k)[0]) for k in ("w_c", "w_s")},
-        "samples": {**counts, "stretches_disturbed": disturbed,
-                    "motion": int(np.count_nonzero(kept & (omega != 0))),
-                    "used_device_s": float(np.count_nonzero(kept)) / rate_hz},
+        "samples": samples,
+        **(extra or {}),
         "residual_rms_dph": {k: float(v[0]) for k, v in fit.residual_rms.items()},
     }
 

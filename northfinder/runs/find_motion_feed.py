@@ -151,7 +151,7 @@ def replay_feed(block: ImuBlock, events: Sequence[dict[str, Any]], rate_hz: floa
 def feed_fit_result(feed: MotionFeed, events: Sequence[dict[str, Any]], sol: Any,
                     height_m: float = 0.0) -> dict[str, Any]:
     """find_motion.motion_fit_result's dict from a feed (the same keys; live and replay alike)."""
-    from northfinder.estimators.heading import heading_with_gyro_fit
+    from northfinder.runs.find_motion import gyro_fit_summary
 
     feed.finish()
     if sum(e.get("event") == "start" for e in events) != 1:
@@ -164,21 +164,11 @@ def feed_fit_result(feed: MotionFeed, events: Sequence[dict[str, Any]], sol: Any
         fit, counts = feed.accumulator.fit_screened()
     except InputError as exc:
         return {"available": False, "reason": str(exc)}
-    heading, std, methods = heading_with_gyro_fit(sol, fit, height_m=height_m)
-    return {
-        "available": True,
-        "heading_deg": heading,
-        "heading_std_deg": std,
-        "methods": methods,
-        "terms": list(RUN_TERMS),
-        "misalignment_dph_per_dps": {ax: float(fit.coef(f"d_{ax}")[0]) for ax in AXES},
-        "wobble_dph_per_dps": {k: float(fit.coef(k)[0]) for k in ("w_c", "w_s")},
-        "samples": {"rest": counts["rest"], "motion": counts["motion_kept"],
-                    "stretches_dropped": counts["stretches_dropped"], **feed.counts(),
-                    "stretches_disturbed": counts["stretches_disturbed"],
-                    "used_device_s": float(counts["samples_used"]) / feed.rate_hz},
-        "residual_rms_dph": {k: float(v[0]) for k, v in fit.residual_rms.items()},
-    }
+    samples = {"rest": counts["rest"], "motion": counts["motion_kept"],
+               "stretches_dropped": counts["stretches_dropped"], **feed.counts(),
+               "stretches_disturbed": counts["stretches_disturbed"],
+               "used_device_s": float(counts["samples_used"]) / feed.rate_hz}
+    return gyro_fit_summary(fit, AXES, sol, height_m, samples)
 
 
 class FedEventLog:

@@ -21,10 +21,11 @@ import numpy as np
 from northfinder.constants import DPH
 from northfinder.devices import registry
 from northfinder.errors import InputError
-from northfinder.estimators.heading import HeadingSolution, heading_with_gyro_fit
+from northfinder.estimators.heading import HeadingSolution
 from northfinder.estimators.motion_fit import RUN_TERMS, place_samples
 from northfinder.estimators.motion_sessions import fit_motion_sessions
 from northfinder.rundir import IMU_RAW, RunDir, session_file
+from northfinder.runs.find_motion import gyro_fit_summary
 
 SESSIONS_JOIN = (
     "none: each session's samples are placed between its own dwells and fitted with its own gyro bias "
@@ -96,7 +97,6 @@ def sessions_motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol
                                                    terms=RUN_TERMS)
     except InputError as exc:
         return {"available": False, "reason": f"a resumed run: {exc}"}
-    heading, std, methods = heading_with_gyro_fit(sol, fit, height_m=height_m)
     rate_hz = float(next(e for e in events if e.get("event") == "start")["imu"]["rate_hz"])
     n_sessions = sum(e.get("event") == "start" for e in events)
     sessions = [{"session": int(p[3]["session"]), "dwells": int(p[3]["dwells"]), "rest": int(p[3]["rest"]),
@@ -104,24 +104,13 @@ def sessions_motion_fit_result(rd: RunDir, events: Sequence[dict[str, Any]], sol
                  "bias_dph": {ax: float(fit.coef(f"R_{ax}@{p[3]['session']}")[0]) for ax in axes}}
                 for p in parts]
     counts = {k: int(sum(p[3][k] for p in parts)) for k in ("rest", "motion", "stretches_dropped")}
-    return {
-        "available": True,
-        "heading_deg": heading,
-        "heading_std_deg": std,
-        "methods": methods,
-        "terms": list(RUN_TERMS),
-        "misalignment_dph_per_dps": {ax: float(fit.coef(f"d_{ax}")[0]) for ax in axes},
-        "wobble_dph_per_dps": {k: float(fit.coef(k)[0]) for k in ("w_c", "w_s")},
-        "samples": {**counts, "stretches_disturbed": disturbed,
-                    "fit_span_device_s": float(sum(p[3]["fit_span_device_s"] for p in parts)),
-                    "through_return": any(p[3]["through_return"] for p in parts),
-                    "motion": int(np.count_nonzero(kept & (omega != 0))),
-                    "used_device_s": float(np.count_nonzero(kept)) / rate_hz,
-                    "sessions_unused": n_sessions - len(parts)},
-        "sessions": sessions,
-        "join": SESSIONS_JOIN,
-        "residual_rms_dph": {k: float(v[0]) for k, v in fit.residual_rms.items()},
-    }
+    samples = {**counts, "stretches_disturbed": disturbed,
+               "fit_span_device_s": float(sum(p[3]["fit_span_device_s"] for p in parts)),
+               "through_return": any(p[3]["through_return"] for p in parts),
+               "motion": int(np.count_nonzero(kept & (omega != 0))),
+               "used_device_s": float(np.count_nonzero(kept)) / rate_hz,
+               "sessions_unused": n_sessions - len(parts)}
+    return gyro_fit_summary(fit, axes, sol, height_m, samples, {"sessions": sessions, "join": SESSIONS_JOIN})
 
 
 def sessions_report_samples(rd: RunDir, events: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
