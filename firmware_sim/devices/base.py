@@ -4,6 +4,10 @@ The simulator's loop (firmware_sim.simulator) reads the shared device clock, the
 device: if its `fileno()` is readable, calls `on_readable(t)`; then calls `advance(t)`, which
 must emit everything the device owes up to device time `t` (samples, heartbeats, end of a
 move). Devices never sleep and never read the wall clock: device time is the only time.
+
+This module holds no protocol: each device's bytes follow its own document, cited in its module
+(SMC100 user manual §5, KVH 1775 ICD 56-0298, CiA 301/410, Thorlabs APT protocol issue 28,
+STIM300 TS1524, NMEA 0183). `PtyDevice` is only the pty an RS-232/RS-422 device is reached on.
 """
 
 from __future__ import annotations

@@ -5,6 +5,11 @@ A subclass calls ``StreamReader.__init__(port, timeout_s)`` (which owns the shar
 port, the Condition, the reader's error), opens its transport into `_t` (`read_available()` and
 `close()`), implements :meth:`_on_bytes`, and calls :meth:`_start_reader`. :func:`wait_until` is
 the one bounded wait on a Condition; the CAN accelerometer waits on it too.
+
+No byte is interpreted here: the frames are the subclasses' codecs' (KVH format A per the 1775
+ICD 56-0298 §5, the STIM datagrams per TS1524 §5, NMEA 0183 sentences). Host time bounds the
+waits and measures a link's silence as the sum of empty reads; which samples were lost, and how
+many, the codecs decide from the devices' own counters.
 """
 
 from __future__ import annotations
