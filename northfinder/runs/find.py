@@ -289,6 +289,11 @@ def _configure(cfg: bench.BenchConfig, imu: InertialStream, acc: TiltSensor,
     return acc.configure_for_run(cfg.accelerometer, rundir.log_event)
 
 
+MOTION_FIT_FED = "fed"
+"""The start event's `motion_fit`: the per-sample fit was fed as the samples arrived
+(runs.find_motion_feed); runs without it were fitted in one batch (runs.find_motion)."""
+
+
 def _start_event(ctx: RunContext, imu: InertialStream, acc_info: dict[str, Any],
                  sim_info: dict[str, Any] | None,
                  stage_identity: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -305,6 +310,7 @@ def _start_event(ctx: RunContext, imu: InertialStream, acc_info: dict[str, Any],
         "positions_planned": cfg.run.positions,
         "dwell_s": cfg.run.dwell_s,
         "plan": cfg.run.plan,
+        "motion_fit": MOTION_FIT_FED,
         "turntable": {"model": registry.model_of(cfg.turntable, "turntable"),
                       "identity": stage_identity or {}},
         "imu": {"port": cfg.imu.port, **imu.recorded_settings(), "identity": imu.identity(),
@@ -859,6 +865,9 @@ def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
             _check_covered(rd, session, ev, block, len(positions) + 1)
             positions.append(_position_from_logs(ev, block, accel_block, rate_hz))
     start = starts[0]
+    # a run recorded since the fed fit replays through the same feed; an older one (its live result
+    # from the batch fit, equal to 1e-12) through the batch fit, so that it too replays bit for bit
+    fed = session == 1 and start.get("motion_fit") == MOTION_FIT_FED
     complete = any(e.get("event") == "end" and e.get("complete") for e in events)
     planned = int(start.get("positions_planned", sum(e.get("event") == "position" for e in events)))
     result = None
@@ -875,7 +884,7 @@ def replay(path: str | Path, method: str | None = None) -> ReplayOutcome:
             devices=devices_summary(events),
             plan=start.get("plan", "positions"),
             motion=_motion(rd, events, start.get("height_m", 0.0), block if session == 1 else None,
-                           replay_rate_hz=rate_hz if session == 1 else None),
+                           replay_rate_hz=rate_hz if fed else None),
             prediction=start.get("plan_prediction"),
         )
     return ReplayOutcome(result, complete, len(positions), planned, positions)
