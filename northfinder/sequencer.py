@@ -28,7 +28,13 @@ from northfinder.devices.imu import ImuBlock, InertialStream
 from northfinder.devices.stage import RotaryStage, StageFault
 from northfinder.devices.tilt import AccelBlock, TiltSensor
 from northfinder.errors import ConfigError, DeviceError, NorthfinderError
-from northfinder.estimators.dwell import DwellLimits, dwell_problems
+from northfinder.estimators.dwell import (
+    DwellLimits,
+    DwellVerdict,
+    accel_dwell_verdict,
+    combine_verdicts,
+    imu_dwell_verdict,
+)
 from northfinder.estimators.means import PositionMeans, position_means
 from northfinder.estimators.plan import MOTION_KINDS, sweep_targets_deg
 from northfinder.stopflag import StopFlag
@@ -85,6 +91,17 @@ class Progress:
     gyro_std_of_mean_dph: list[float] = field(default_factory=list)
     settle_s: float = 0.0
     means: PositionMeans | None = None
+
+
+@dataclass(frozen=True)
+class DwellData:
+    """One dwell as read: the IMU's blocks, the tilt sensor's block, the IMU's verdict (made while the
+    tilt sensor's samples arrived) and the table angle read at rest during it."""
+
+    blocks: list[ImuBlock]
+    accel_block: AccelBlock
+    imu_verdict: DwellVerdict
+    table_angle_deg: float
 
 
 @dataclass
@@ -153,12 +170,15 @@ def settle_reached(z_windows_dph: list[np.ndarray], ratio: float, rest_dph: floa
 class SequencerLimits:
     """The sequencer's settings (host time-outs, retries, device-time grids) in one object.
 
-    `read_timeout_s`: host seconds a read may wait beyond the samples' own duration; `max_attempts`:
-    measurements of one position before the run stops; `dwell`: when a dwell is measured again
-    (estimators.dwell.DwellLimits); `stage_speed_deg_s` ([turntable] speed_deg_s, 0 unknown) bounds
-    each move (host timeout) and its settle (device time); `stage_settle_s` ([turntable] settle_s)
-    is the rest after READY of a unit without a gyro z; `dwell_grid_s`: a dwell starts on a multiple
-    of this many device seconds of IMU samples (so it does not depend on host timing);
+    `poll_s`: the stage's state is polled every poll_s of device time, paced by the IMU's samples
+    arriving (host seconds when the stream is silent), so a time-scaled simulator is polled as often
+    in device time as a real bench; `read_timeout_s`: host seconds a read may wait beyond the
+    samples' own duration; `max_attempts`: measurements of one position before the run stops;
+    `dwell`: when a dwell is measured again (estimators.dwell.DwellLimits); `stage_speed_deg_s`
+    ([turntable] speed_deg_s, 0 unknown) bounds each move (host timeout) and its settle (device
+    time); `stage_settle_s` ([turntable] settle_s) is the rest after READY of a unit without a gyro
+    z; `dwell_grid_s`: a dwell starts on a multiple of this many device seconds of IMU samples (so
+    it does not depend on host timing);
     `settle_margin_s`: device time dropped after the gyro-z settle criterion is met — it fires once
     the ringing is below one window's noise; the margin lets it decay e^(margin/τ) further (28× for
     the 0.3 s decay of the bench), so the dwell starts with the table at rest."""
@@ -218,6 +238,8 @@ class Sequencer:
         IMU bytes a USB link holds back, so the first settle waits to see it (|Δα|, deg)."""
         self.positions: list[PositionMeans] = []
         self._plan: list[float] = []
+        self._rest_angle_deg: float | None = None
+        """The table angle read during the last dwell (None once a move is commanded)."""
 
     # -- helpers -----------------------------------------------------------------------------
     def _event(self, event: dict[str, Any]) -> None:
@@ -302,7 +324,7 @@ class Sequencer:
                     f"not READY {timeout_s:g} s after {what} "
                     f"(state {st.name}) — check the stage's speed and load",
                 )
-            time.sleep(self.limits.poll_s)
+            self.imu.wait_device_s(self.limits.poll_s, self.limits.poll_s)
 
     def _move_once(self, target_deg: float) -> None:
         self.turntable.start_move(target_deg)
@@ -448,8 +470,7 @@ class Sequencer:
     def _read_accel(self, n: int) -> AccelBlock:
         return self.accel.read_samples(n, self.limits.read_timeout_s)
 
-    def dwell(self, index: int, target_deg: float,
-              settle_s: float = 0.0) -> tuple[list[ImuBlock], AccelBlock]:
+    def dwell(self, index: int, target_deg: float, settle_s: float = 0.0) -> DwellData:
         """Collect dwell_s·rate IMU samples right after settling (in chunks, reporting live
         statistics), then dwell_s·rate accelerometer samples: those after its NMT start at READY,
         less the first settle_s·rate of them (`SettleResult.rest_before_dwell_s`).
@@ -457,7 +478,11 @@ class Sequencer:
         The two dwells need not coincide: both lie inside the same rest (the accelerometer was
         started at or after READY, which is after the last window the IMU saw slewing, and settle_s
         covers the IMU's settle from there; the next move is commanded only after both dwells have
-        arrived), so a CAN link that lags, or loses frames, shifts nothing."""
+        arrived), so a CAN link that lags, or loses frames, shifts nothing.
+
+        What the host does between the IMU's last dwell sample and the next move command lets device
+        time run on unseen, so the table angle is read during the dwell and the IMU's checks are made
+        while the tilt sensor's samples are still on their way."""
         cfg = self.run_cfg
         rate = float(self.imu.rate_hz)
         n_total = max(2, int(round(cfg.dwell_s * rate)))
@@ -495,12 +520,15 @@ class Sequencer:
                     gyro_std_of_mean_dph=np.sqrt(var / np.maximum(n_ok, 1)).tolist(),
                 )
             )
+            if self._rest_angle_deg is None:
+                self._rest_angle_deg = float(self.turntable.angle_deg())  # at rest: any time in the dwell
         self._check_stop()
+        imu_verdict = self._imu_verdict(blocks)  # while the tilt sensor's dwell is still arriving
         skip = int(np.ceil(settle_s * self.accel_rate_hz))
         if skip > 0:
             self._read_accel(skip)
         n_accel = max(2, int(round(cfg.dwell_s * self.accel_rate_hz)))
-        return blocks, self._read_accel(n_accel)
+        return DwellData(blocks, self._read_accel(n_accel), imu_verdict, self._rest_angle_deg)
 
     # -- the sequence ------------------------------------------------------------------------
     def run(self) -> list[PositionMeans]:
@@ -569,7 +597,7 @@ class Sequencer:
         reasons: list[str] = []
         for attempt in range(1, self.limits.max_attempts + 1):
             try:
-                settle, blocks, accel_block, counts = self._attempt(i, target)
+                settle, data, counts = self._attempt(i, target)
             except StageFault:
                 raise  # _move already retried once
             except DeviceError as exc:
@@ -579,13 +607,13 @@ class Sequencer:
                 if exc.device == "imu" and self._reconnect_imu(i, exc):
                     reason = f"imu link lost and reconnected: {exc}"
             else:
-                problems = self.dwell_problems(blocks, accel_block)
+                problems = combine_verdicts(data.imu_verdict, self._accel_verdict(data.accel_block))
                 if not problems:
                     self._check_stop()
-                    angle_deg = float(self.turntable.angle_deg())
                     self._flush_logs()
                     extra = {"attempt": attempt, "heartbeats": counts[0], "emcy": counts[1]}
-                    means = self._record(i, target, angle_deg, settle, blocks, accel_block, extra)
+                    means = self._record(i, target, data.table_angle_deg, settle, data.blocks,
+                                         data.accel_block, extra)
                     self.on_progress(Progress(i + 1, n, "measured", target, dwell_done_s=self.run_cfg.dwell_s,
                                               dwell_s=self.run_cfg.dwell_s, gyro_mean_dph=means.gyro_dph,
                                               settle_s=settle.settle_s, means=means))
@@ -602,13 +630,13 @@ class Sequencer:
             list(self.positions),
         )
 
-    def _attempt(self, i: int,
-                 target: float) -> tuple[SettleResult, list[ImuBlock], AccelBlock, tuple[int, int]]:
+    def _attempt(self, i: int, target: float) -> tuple[SettleResult, DwellData, tuple[int, int]]:
         """One measurement of a position: move (the tilt sensor paused), settle, dwell; the tilt
         sensor's status and fault reports during the dwell."""
         n = len(self._plan)
         self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
-        here = float(self.turntable.angle_deg())
+        here = self._rest_angle_deg if self._rest_angle_deg is not None else float(self.turntable.angle_deg())
+        self._rest_angle_deg = None
         self._move_deg = target - here
         # homing's motion, not yet seen in the IMU data, counts as part of the first move;
         # the data since the home command are kept for that (discarded before it)
@@ -623,9 +651,9 @@ class Sequencer:
         settle = self.settle(expect_motion=travel_deg >= MIN_VISIBLE_MOVE_DEG, move_deg=travel_deg)
         self._homing_travel_deg = 0.0
         hb0, emcy0 = self.accel.counts()
-        blocks, accel_block = self.dwell(i, target, settle.rest_before_dwell_s)
+        data = self.dwell(i, target, settle.rest_before_dwell_s)
         hb1, emcy1 = self.accel.counts()
-        return settle, blocks, accel_block, (hb1 - hb0, emcy1 - emcy0)
+        return settle, data, (hb1 - hb0, emcy1 - emcy0)
 
     def _reconnect_imu(self, i: int, exc: DeviceError) -> bool:
         """After a failed IMU read: re-open its link if it vanished (InertialStream.recover) and log how
@@ -640,11 +668,14 @@ class Sequencer:
         self._event({"event": "imu_reconnect", "index": i, "ok": True, **outcome, "error": str(exc)})
         return True
 
-    def dwell_problems(self, blocks: list[ImuBlock], accel_block: AccelBlock) -> list[str]:
-        """Why a dwell must be measured again (estimators.dwell.dwell_problems); empty if it is good."""
-        return dwell_problems(blocks, accel_block, imu_rate_hz=float(self.imu.rate_hz),
-                              accel_rate_hz=self.accel_rate_hz, gyro_axes=self._gyro_axes(),
-                              stalls=self.imu.stall_indices, limits=self.limits.dwell)
+    def _imu_verdict(self, blocks: list[ImuBlock]) -> DwellVerdict:
+        """The IMU's share of why a dwell must be measured again (estimators.dwell)."""
+        return imu_dwell_verdict(blocks, imu_rate_hz=float(self.imu.rate_hz), gyro_axes=self._gyro_axes(),
+                                 stalls=self.imu.stall_indices, limits=self.limits.dwell)
+
+    def _accel_verdict(self, accel_block: AccelBlock) -> DwellVerdict:
+        """The tilt sensor's share of why a dwell must be measured again (estimators.dwell)."""
+        return accel_dwell_verdict(accel_block, accel_rate_hz=self.accel_rate_hz, limits=self.limits.dwell)
 
     def log_stats(self) -> None:
         """The devices' counters for this session (bad CRC, resyncs, lost, EMCY…) to the events log."""

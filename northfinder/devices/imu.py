@@ -184,6 +184,12 @@ class InertialStream(ABC):
         as the model's decoder gives them from the raw log; None when the model does not tap."""
         return None
 
+    def wait_decoded(self, n: int, timeout_s: float) -> bool | None:
+        """Wait until `n` more samples have been decoded (read or not), at most `timeout_s` host
+        seconds: True when they came, False on time-out; None when the model cannot tell (then
+        :meth:`wait_device_s` stands host time for device time)."""
+        return None
+
     def reopen(self, timeout_s: float) -> int:
         """Re-open a vanished link; returns the attempts it took (DeviceError if not within timeout_s)."""
         raise DeviceError(ROLE, self.port, "this IMU model cannot re-open its link")
@@ -202,6 +208,14 @@ class InertialStream(ABC):
         """`read` bounded by the samples' own duration (twice) plus `read_timeout_s` host seconds."""
         wait_s = 2.0 * n / self.rate_hz + read_timeout_s
         return self.read(n, timeout_s=max(read_timeout_s, wait_s))
+
+    def wait_device_s(self, device_s: float, host_max_s: float) -> None:
+        """Let `device_s` of the unit's own time go by, judged by its samples arriving, for at most
+        `host_max_s` host seconds: a poll paced this way keeps its period in device time whatever
+        the host's speed or the simulator's time scale (issue 27)."""
+        n = max(1, int(round(device_s * float(self.rate_hz))))
+        if self.wait_decoded(n, host_max_s) is None:
+            time.sleep(min(device_s, host_max_s))
 
     def recover(self, timeout_s: float) -> dict[str, Any] | None:
         """After a failed read: re-open the link if it vanished (None when it did not — the read just

@@ -329,6 +329,13 @@ class Imu(StreamReader):
         return frames_to_block(np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks]),
                                rate, fmt, units)
 
+    def wait_decoded(self, n: int, timeout_s: float) -> bool:
+        """Wait until `n` more samples have been decoded, at most `timeout_s` host seconds."""
+        with self._cond:
+            target = self._pending_n + int(n)
+            return self._cond.wait_for(lambda: self._pending_n >= target or self._error is not None,
+                                       timeout_s) and self._error is None
+
     def discard_pending(self) -> int:
         """Drop samples decoded but not read yet (e.g. those from before a move); returns how many."""
         with self._cond:

@@ -98,36 +98,63 @@ def _counter_problems(idx: np.ndarray, stalls: list[int], rate: float,
     return out
 
 
+@dataclass(frozen=True)
+class DwellVerdict:
+    """One stream's findings on a dwell: `counts` (gaps, lost or invalid samples) make the
+    disturbance test moot, `disturbances` are reported only when no stream has a count problem."""
+
+    counts: list[str]
+    disturbances: list[str]
+
+
+def imu_dwell_verdict(blocks: list[Any], *, imu_rate_hz: float, gyro_axes: str, stalls: list[int],
+                      limits: DwellLimits) -> DwellVerdict:
+    """The IMU's share of :func:`dwell_problems` (its ImuBlocks): the sequencer works it out while
+    the tilt sensor's dwell is still arriving."""
+    rate = float(imu_rate_hz)
+    idx = np.concatenate([np.asarray(b.sample_index) for b in blocks])
+    gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0) / DPH
+    counts = _counter_problems(idx, stalls, rate, limits)
+    counts += invalid_problems(gyro, idx.size, gyro_axes, limits.max_lost_fraction)
+    if counts:
+        return DwellVerdict(counts, [])
+    imu_acc = np.concatenate([np.asarray(b.accel_g) for b in blocks], axis=0)
+    w = max(10, int(round(limits.disturbance_window_s * rate)))
+    z, j = disturbance_valid(np.hstack([gyro, imu_acc]), w)
+    if z <= DISTURBANCE_Z:
+        return DwellVerdict([], [])
+    return DwellVerdict([], [f"disturbance: IMU window {j} ({j * w / rate:.2f} s into the dwell) is "
+                             f"{z:.1f} σ off the dwell's level"])
+
+
+def accel_dwell_verdict(accel_block: Any, *, accel_rate_hz: float, limits: DwellLimits) -> DwellVerdict:
+    """The tilt sensor's share of :func:`dwell_problems` (its AccelBlock)."""
+    counter = np.asarray(accel_block.counter)
+    a_lost = int(accel_block.lost_samples)
+    if a_lost > limits.accel_max_lost_fraction * max(counter.size, 1):
+        return DwellVerdict([f"accelerometer lost {a_lost} of {a_lost + counter.size} samples (too few)"], [])
+    wa = max(5, int(round(2.0 * limits.disturbance_window_s * accel_rate_hz)))
+    za, ja = disturbance_z(np.asarray(accel_block.accel_g), wa, floor=ACCEL_QUANTUM_G / np.sqrt(12.0))
+    if za <= DISTURBANCE_Z:
+        return DwellVerdict([], [])
+    return DwellVerdict([], [f"disturbance: accelerometer window {ja} ({ja * wa / accel_rate_hz:.2f} s into "
+                             f"its dwell) is {za:.1f} σ off"])
+
+
+def combine_verdicts(*verdicts: DwellVerdict) -> list[str]:
+    """Why a dwell must be measured again (empty if it is good): every stream's count problems, else
+    every disturbance."""
+    counts = [p for v in verdicts for p in v.counts]
+    return counts or [p for v in verdicts for p in v.disturbances]
+
+
 def dwell_problems(blocks: list[Any], accel_block: Any, *, imu_rate_hz: float, accel_rate_hz: float,
                    gyro_axes: str, stalls: list[int], limits: DwellLimits) -> list[str]:
     """Why a dwell must be measured again (empty if it is good): a gap or too many lost samples
     (device sample counters; `stalls`: first index after each pause of unknown length), samples
     flagged not valid, or a disturbance in the gyro/accelerometer statistics. `blocks`: the IMU's
     ImuBlocks, `accel_block` the tilt sensor's AccelBlock."""
-    rate = float(imu_rate_hz)
-    idx = np.concatenate([np.asarray(b.sample_index) for b in blocks])
-    out = _counter_problems(idx, stalls, rate, limits)
-    gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0) / DPH
-    imu_acc = np.concatenate([np.asarray(b.accel_g) for b in blocks], axis=0)
-    out += invalid_problems(gyro, idx.size, gyro_axes, limits.max_lost_fraction)
-    counter = np.asarray(accel_block.counter)
-    a_lost = int(accel_block.lost_samples)
-    if a_lost > limits.accel_max_lost_fraction * max(counter.size, 1):
-        out.append(f"accelerometer lost {a_lost} of {a_lost + counter.size} samples (too few)")
-    if out:
-        return out
-    w = max(10, int(round(limits.disturbance_window_s * rate)))
-    z, j = disturbance_valid(np.hstack([gyro, imu_acc]), w)
-    wa = max(5, int(round(2.0 * limits.disturbance_window_s * accel_rate_hz)))
-    za, ja = disturbance_z(np.asarray(accel_block.accel_g), wa, floor=ACCEL_QUANTUM_G / np.sqrt(12.0))
-    if z > DISTURBANCE_Z:
-        out.append(
-            f"disturbance: IMU window {j} ({j * w / rate:.2f} s into the dwell) is {z:.1f} σ "
-            "off the dwell's level"
-        )
-    if za > DISTURBANCE_Z:
-        out.append(
-            f"disturbance: accelerometer window {ja} ({ja * wa / accel_rate_hz:.2f} s into "
-            f"its dwell) is {za:.1f} σ off"
-        )
-    return out
+    return combine_verdicts(
+        imu_dwell_verdict(blocks, imu_rate_hz=imu_rate_hz, gyro_axes=gyro_axes, stalls=stalls, limits=limits),
+        accel_dwell_verdict(accel_block, accel_rate_hz=accel_rate_hz, limits=limits),
+    )

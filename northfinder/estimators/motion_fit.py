@@ -334,6 +334,26 @@ class _Stretch:
                 self.factors[j] = _fold(self.factors[j], rows)
             self.n += m
 
+    def add_rest(self, encoder_deg: float, gyro_dph, axes, terms) -> None:
+        """A rest's rows, all with one design row a (α = encoder, ω = 0), folded without the rows:
+        for rows [a, y_i], i = 1…n, the two rows √n·[a, ȳ] and [0, √Σ(y_i − ȳ)²] have the same
+        RᵀR (n·aaᵀ, a·Σy, Σy²), so ‖A·x − y‖² = n(a·x − ȳ)² + Σ(y_i − ȳ)² exactly; the centred sum
+        is the stable two-pass one. O(n) instead of a QR of n rows (the dwell is most of a run)."""
+        g = np.asarray(gyro_dph, dtype=float)
+        n = g.shape[0]
+        if n == 0:
+            return
+        a_mat, _ = motion_design(np.array([float(encoder_deg)]), np.zeros(1), axes, terms)
+        for j in range(len(axes)):
+            y = g[:, j]
+            mean = float(np.mean(y))
+            spread = float(np.sqrt(np.sum((y - mean) ** 2)))
+            rows = np.zeros((2, a_mat.shape[1] + 1))
+            rows[0, :-1], rows[0, -1] = np.sqrt(n) * a_mat[j], np.sqrt(n) * mean
+            rows[1, -1] = spread
+            self.factors[j] = _fold(self.factors[j], rows)
+        self.n += n
+
     def sq_residual(self, x_aug: np.ndarray) -> np.ndarray:
         """Σ over the stretch's samples of the squared residual at coefficients x, per axis."""
         return np.array([float(np.sum((f @ x_aug) ** 2)) if f is not None else 0.0 for f in self.factors])
@@ -412,7 +432,7 @@ class MotionFitAccumulator:
                     alpha, omega = table_angle_from_z(z, 1.0 / self.rate_hz, enc)
                     span = slice(rest.shape[0], rest.shape[0] + between.size)
                     self._add_stretch(True, alpha[span], omega[span], g[between])
-        self._add_stretch(False, np.full(rest_next.shape[0], e1), np.zeros(rest_next.shape[0]), rest_next)
+        self._add_rest(e1, rest_next)
         later = idx > b1
         self._pending_idx, self._pending_gyro = [idx[later]], [g[later]]
         self._dwell = (a1, b1, e1, rest_next)
@@ -425,6 +445,15 @@ class MotionFitAccumulator:
         stretch.add(alpha, omega, gyro[:, cols], self.axes, self.terms)
         self.stretches.append(stretch)
         self.counts["motion" if motion else "rest"] += stretch.n
+
+    def _add_rest(self, encoder_deg: float, gyro) -> None:
+        if len(gyro) == 0:
+            return
+        cols = [{"x": 0, "y": 1, "z": 2}[ax] for ax in self.axes]
+        stretch = _Stretch(False, len(self.axes))
+        stretch.add_rest(encoder_deg, gyro[:, cols], self.axes, self.terms)
+        self.stretches.append(stretch)
+        self.counts["rest"] += stretch.n
 
     def held_samples(self) -> int:
         """Samples held right now (the memory that does not shrink to factors)."""

@@ -291,6 +291,13 @@ class StimImu(StreamReader, InertialStream):
             gaps = [k for k in self._stream.unknown_gaps if index[0] <= k <= index[-1]]  # type: ignore[union-attr]
         return samples_to_block(index, _concat(rows), self.cfg, gaps)
 
+    def wait_decoded(self, n: int, timeout_s: float) -> bool:
+        """Wait until `n` more samples have been decoded, at most `timeout_s` host seconds."""
+        with self._cond:
+            target = self._pending_n + int(n)
+            return self._cond.wait_for(lambda: self._pending_n >= target or self._error is not None,
+                                       timeout_s) and self._error is None
+
     def discard_pending(self) -> int:
         with self._cond:
             n, self._pending, self._pending_n = self._pending_n, [], 0
