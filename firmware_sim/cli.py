@@ -35,6 +35,8 @@ from firmware_sim.config import (
     load_toml,
 )
 
+log = logging.getLogger("firmware_sim")
+
 SWAY_EXAMPLE = "roll=10:8,pitch=5:6,yaw=3:10,heave=0.5:7"
 
 
@@ -151,6 +153,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "seed gives the same bytes when the host's commands land at the same device times "
                    "(always, for a bench the host does not move); docs/simulator.md")
     p.add_argument("--time-scale", type=float, metavar="K", help="device time runs K× the wall clock")
+    p.add_argument("--control-stdin", action="store_true",
+                   help="read commands from standard input, one a line: `time-scale K` (device time "
+                   "runs K× the wall clock from then on, continuous); for a client that paces the "
+                   "simulation to its host (northfinder find --time-scale auto)")
     p.add_argument("--scenario", metavar="NAME",
                    help="bench (turntable + IMU + CAN accelerometer, default) | ship (IMU on a swaying "
                    "base) | vehicle (IMU + GNSS on a driving car)")
@@ -263,6 +269,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"firmware-sim: cannot open the bench's ports ({exc})", file=sys.stderr)
             return 1
         print(json.dumps(endpoints), flush=True)
+        if args.control_stdin:
+            threading.Thread(target=_control_loop, args=(sim, done), name="firmware_sim-control",
+                             daemon=True).start()
         while not done.is_set():
             if sim.wait(0.2):
                 print(f"firmware-sim: stopped by an internal error: {sim.error!r}", file=sys.stderr)
@@ -270,6 +279,24 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         sim.stop()
     return 0
+
+
+def _control_loop(sim: Any, done: threading.Event) -> None:
+    """--control-stdin: apply each command line; a bad line is reported on stderr and skipped. End of
+    input ends the simulator (its client has gone)."""
+    for line in sys.stdin:
+        words = line.split()
+        if len(words) == 2 and words[0] == "time-scale":
+            try:
+                sim.clock.set_scale(float(words[1]))
+                log.info("time scale %s", words[1])
+                continue
+            except ValueError:
+                pass
+        if words:
+            print(f"firmware-sim: unknown control line {line.strip()!r} (use: time-scale K, K > 0)",
+                  file=sys.stderr)
+    done.set()
 
 
 if __name__ == "__main__":

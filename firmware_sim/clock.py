@@ -13,19 +13,38 @@ class DeviceClock:
     """
 
     def __init__(self, time_scale: float = 1.0) -> None:
-        if not time_scale > 0.0:
-            raise ValueError(f"time_scale must be > 0, got {time_scale!r}")
-        self.time_scale = float(time_scale)
-        self._t0_wall_s = time.monotonic()
+        self._anchor = (time.monotonic(), 0.0, _checked(time_scale))
+        """(wall s, device s at that wall time, scale): one tuple, so that a reader on another
+        thread never sees a new scale with an old anchor."""
+
+    @property
+    def time_scale(self) -> float:
+        return self._anchor[2]
 
     def start(self) -> None:
         """Make device time 0 now."""
-        self._t0_wall_s = time.monotonic()
+        self._anchor = (time.monotonic(), 0.0, self._anchor[2])
+
+    def set_scale(self, time_scale: float) -> None:
+        """Run `time_scale`× the wall clock from now on; device time goes on from where it is."""
+        scale = _checked(time_scale)
+        wall = time.monotonic()
+        self._anchor = (wall, self._device_at(wall), scale)
 
     def now(self) -> float:
         """Device seconds since start."""
-        return (time.monotonic() - self._t0_wall_s) * self.time_scale
+        return self._device_at(time.monotonic())
+
+    def _device_at(self, wall_s: float) -> float:
+        wall0, device0, scale = self._anchor
+        return device0 + (wall_s - wall0) * scale
 
     def wall_s(self, device_s: float) -> float:
-        """Wall seconds that a device-time interval takes."""
-        return device_s / self.time_scale
+        """Wall seconds that a device-time interval takes (at the present scale)."""
+        return device_s / self._anchor[2]
+
+
+def _checked(time_scale: float) -> float:
+    if not float(time_scale) > 0.0:
+        raise ValueError(f"time_scale must be > 0, got {time_scale!r}")
+    return float(time_scale)

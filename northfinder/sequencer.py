@@ -114,6 +114,9 @@ class SettleResult:
     after_motion_s: float | None = None
     """Device time from the start of the last gyro-z window still turning to the end of the settle
     (None when no motion was seen): how much of the rest after READY the settle took, at most."""
+    onset_index: int | None = None
+    """Device index of the first sample of the first gyro-z window that showed the table turning
+    (None when no motion was expected or the unit has no gyro z)."""
 
     def as_event(self) -> dict[str, Any]:
         """The settle as the events log records it."""
@@ -240,6 +243,8 @@ class Sequencer:
         self._plan: list[float] = []
         self._rest_angle_deg: float | None = None
         """The table angle read during the last dwell (None once a move is commanded)."""
+        self._last_dwell_end: int | None = None
+        """Device index of the last kept dwell's last IMU sample."""
 
     # -- helpers -----------------------------------------------------------------------------
     def _event(self, event: dict[str, Any]) -> None:
@@ -433,12 +438,15 @@ class Sequencer:
         min_windows = int(np.ceil(cfg.settle_min_s * rate / n_win))
         self._align_to_grid(n_win)
         means_dph: list[float] = []
+        onset: int | None = None
         if expect_motion:
             for _ in range(int(np.ceil(2.0 * move_s * rate / n_win))):
                 self._check_stop()
-                z = np.asarray(self._read_imu(n_win).gyro_rad_s)[:, 2] / DPH
+                block = self._read_imu(n_win)
+                z = np.asarray(block.gyro_rad_s)[:, 2] / DPH
                 if abs(float(np.nanmean(z))) > cfg.settle_rest_dph:
                     means_dph.append(float(np.nanmean(z)))
+                    onset = int(block.sample_index[0])
                     break
             else:
                 raise DeviceError(
@@ -456,9 +464,9 @@ class Sequencer:
             if k >= min_windows and settle_reached(windows[-2:], cfg.settle_ratio, cfg.settle_rest_dph):
                 margin_s = self._settle_margin(rate)
                 rest_s = after_motion_s(means_dph, n_win / rate, margin_s) if expect_motion else None
-                return SettleResult(k * n_win / rate + margin_s, True, k, rest_s)
+                return SettleResult(k * n_win / rate + margin_s, True, k, rest_s, onset)
         rest_s = after_motion_s(means_dph, n_win / rate, 0.0) if expect_motion else None
-        return SettleResult(max_windows * n_win / rate, False, max_windows, rest_s)
+        return SettleResult(max_windows * n_win / rate, False, max_windows, rest_s, onset)
 
     def _settle_margin(self, rate: float) -> float:
         """Drop settle_margin_s of samples after the settle criterion; returns that time [s]."""
@@ -712,6 +720,10 @@ class Sequencer:
             axes,
         )
         self.positions.append(means)
+        before_move_s = None
+        if settle.onset_index is not None and self._last_dwell_end is not None:
+            before_move_s = (settle.onset_index - self._last_dwell_end) / float(self.imu.rate_hz)
+        self._last_dwell_end = int(idx[-1])
         self._event(
             {
                 "event": "position",
@@ -736,6 +748,7 @@ class Sequencer:
                     "emcy": int((extra or {}).get("emcy", 0)),
                 },
                 "attempt": int((extra or {}).get("attempt", 1)),
+                "before_move_s": before_move_s,
                 "gyro_dph": means.gyro_dph,
                 "accel_g": means.accel_g,
             }

@@ -116,6 +116,13 @@ class SimSettings(SimScenario):
     imu_model: str = "kvh"
     tilt_model: str = "nf-accel"
     """The simulated devices' models (firmware-sim --stage/--imu/--tilt; bench.toml's `model =` names)."""
+    paced: bool = False
+    """The client paces the time scale (find --time-scale auto): firmware-sim reads `time-scale K`
+    lines on its standard input (--control-stdin); `time_scale` is then the highest it will be asked
+    for, which sizes firmware-sim's buffers."""
+
+    def argv(self) -> list[str]:
+        return super().argv() + (["--control-stdin"] if self.paced else [])
 
     def truth(self) -> dict[str, float]:
         return {
@@ -158,7 +165,7 @@ class SimulatorProcess:
                 self.settings.argv(),
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
-                stdin=subprocess.DEVNULL,
+                stdin=subprocess.PIPE if self.paced else subprocess.DEVNULL,
                 env=env,
                 start_new_session=True,
             )
@@ -177,6 +184,19 @@ class SimulatorProcess:
             ) from None
         self.endpoints = endpoints
         return endpoints
+
+    @property
+    def paced(self) -> bool:
+        return "--control-stdin" in self.settings.argv()
+
+    def set_time_scale(self, scale: float) -> None:
+        """Device time runs `scale`× the wall clock from now on (a paced simulator only)."""
+        assert self.proc is not None and self.proc.stdin is not None, "not a paced simulator"
+        try:
+            self.proc.stdin.write(f"time-scale {float(scale)!r}\n".encode())
+            self.proc.stdin.flush()
+        except (BrokenPipeError, ValueError):
+            pass  # it has exited: the run notices its devices gone
 
     def _read_line(self, timeout_s: float) -> str:
         assert self.proc is not None and self.proc.stdout is not None
@@ -230,7 +250,7 @@ class SimulatorProcess:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
-        for pipe in (self.proc.stdout, self.proc.stderr):
+        for pipe in (self.proc.stdin, self.proc.stdout, self.proc.stderr):
             if pipe is not None:
                 pipe.close()
         return self.proc.returncode

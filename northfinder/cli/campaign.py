@@ -24,6 +24,7 @@ from northfinder.errors import InputError
 from northfinder.runs import base as run_base
 from northfinder.runs import campaign as cp
 from northfinder.runs.find import FindRequest
+from northfinder.runs.find_pace import time_scale_arg
 from northfinder.simulate import SimSettings
 
 
@@ -65,7 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="sensor grade: nav, kvh1760, tactical-mems, consumer (default nav)")
     sim.add_argument("--seed", type=int, default=1, metavar="N",
                      help="the simulator's random seed; find k of the plan uses seed + k (default 1)")
-    sim.add_argument("--time-scale", type=float, default=12.0, metavar="K",
+    sim.add_argument("--time-scale", type=time_scale_arg, default=12.0, metavar="K",
                      help="device time runs K× the wall clock (default 12)")
     sim.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
                      help="firmware-sim fault for every find, e.g. imu-silence=10:2 (repeatable)")

@@ -23,6 +23,7 @@ from northfinder import config as bench
 from northfinder.cli._common import add_db_flag, heading_deg
 from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.runs import find as find_run
+from northfinder.runs.find_pace import pace_line, time_scale_arg
 from northfinder.simulate import SimSettings
 
 SIM_STAGES, SIM_IMUS, SIM_TILTS = ("smc100", "apt"), ("kvh", "stim"), ("nf-accel", "cia410")
@@ -109,10 +110,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     sim.add_argument(
         "--time-scale",
-        type=float,
+        type=time_scale_arg,
         default=find_run.DEFAULT_TIME_SCALE,
         metavar="K",
-        help=f"device time runs K× the wall clock (default {find_run.DEFAULT_TIME_SCALE:g})",
+        help=f"device time runs K× the wall clock (default {find_run.DEFAULT_TIME_SCALE:g}); auto: the "
+        "highest this host keeps up with, paced after each position (the run's time_scale events)",
     )
     for flag, models, default in (("--stage", SIM_STAGES, "smc100"), ("--imu", SIM_IMUS, "kvh"),
                                   ("--tilt", SIM_TILTS, "nf-accel")):
@@ -142,7 +144,11 @@ def run(args: argparse.Namespace) -> int:
         threading.Thread(target=_preload_matplotlib, name="preload-matplotlib", daemon=True).start()
     result, rundir, label = find_run.run_find(request(args), progress=ProgressView)
     print_summary(result, run_dir=rundir.path)
-    note = find_run.pace_note(rundir.events())
+    events = rundir.events()
+    paced = pace_line(events)
+    if paced:
+        print(paced, file=sys.stderr)
+    note = find_run.pace_note(events)
     if note:  # wrapped to a terminal's width (at 80 columns too); one line into a pipe or file
         width = shutil.get_terminal_size().columns if sys.stderr.isatty() else 0
         print(textwrap.fill(f"note: {note}", width, subsequent_indent="  ") if width else f"note: {note}",

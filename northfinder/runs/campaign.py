@@ -23,6 +23,7 @@ from northfinder.history import record_or_warn
 from northfinder.runkinds import CAMPAIGN_JSON, KINDS, Replayed
 from northfinder.runs.base import now_utc
 from northfinder.runs.find import FindRequest
+from northfinder.runs.find_pace import AUTO
 
 SCHEMA = "northfinder.campaign/1"
 SEED_STRIDE = 1000
@@ -94,7 +95,8 @@ def find_request(state: dict[str, Any], index: int, step: int, attempt: int, out
     req.simulate = True
     req.heading = float(plan["steps"][step]["reference_deg"])
     req.seed = int(sim["seed"]) + index + SEED_STRIDE * attempt
-    req.grade, req.time_scale = sim["grade"], float(sim["time_scale"])
+    req.grade = sim["grade"]
+    req.time_scale = AUTO if sim["time_scale"] == AUTO else float(sim["time_scale"])
     for name, key in (("pitch", "pitch_deg"), ("roll", "roll_deg"), ("latitude", "latitude_deg")):
         if sim.get(key) is not None:
             setattr(req, name, float(sim[key]))

@@ -45,6 +45,14 @@ from northfinder.runs.find_motion_feed import (
     replay_feed,
     start_live_feed,
 )
+from northfinder.runs.find_pace import (
+    AUTO,
+    AUTO_MAX_SCALE,
+    AUTO_START_SCALE,
+    KEEP_UP_S,
+    AutoPace,
+    PacedEventLog,
+)
 from northfinder.sequencer import Interrupted, RunFailed, Sequencer, SequencerLimits
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 from northfinder.stopflag import StopFlag
@@ -85,7 +93,8 @@ class FindRequest:
     grade: str | None = None
     """The gyro's grade: the simulator's (default SimSettings.grade) and the planner's noise."""
     seed: int = SimSettings.seed
-    time_scale: float = DEFAULT_TIME_SCALE
+    time_scale: float | str = DEFAULT_TIME_SCALE
+    """--time-scale: a factor, or "auto" (runs.find_pace)."""
     fault: Sequence[str] = ()
     sim_config: str | None = None
     plan: str | None = None
@@ -125,8 +134,11 @@ def check_request(req: FindRequest) -> None:
     if req.fault and req.config:
         msg = f"--fault {req.fault[0]}: faults are injected by the simulator; use them with --simulate"
         raise InputError(msg)
-    if req.simulate and not (math.isfinite(req.time_scale) and req.time_scale > 0):
-        raise InputError(f"--time-scale {req.time_scale:g}: use a factor greater than 0")
+    if req.time_scale == AUTO:
+        if req.resume:
+            raise InputError("--time-scale auto: for a new --simulate run; --resume takes a factor")
+    elif req.simulate and not (math.isfinite(req.time_scale) and req.time_scale > 0):
+        raise InputError(f"--time-scale {req.time_scale:g}: use a factor greater than 0 (or auto)")
     for flag, value in (("--target-std", req.target_std), ("--time-budget", req.time_budget)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise InputError(f"{flag} {value:g}: use a value greater than 0")
@@ -191,7 +203,8 @@ def prepare_new(req: FindRequest) -> tuple[bench.BenchConfig, RunDir, SimSetting
             latitude_deg=cfg.site.latitude_deg,
             grade=sim_grade(req),
             seed=req.seed,
-            time_scale=req.time_scale,
+            time_scale=AUTO_MAX_SCALE if req.time_scale == AUTO else float(req.time_scale),
+            paced=req.time_scale == AUTO,
             faults=tuple(req.fault),
             config=str(write_sim_config(rundir, sim_text)),
             can=req.can,
@@ -275,7 +288,7 @@ def _sim_info(settings: SimSettings | None) -> dict[str, Any] | None:
     if settings is None:
         return None
     return {**settings.truth(), "grade": settings.grade, "seed": settings.seed,
-            "time_scale": settings.time_scale, "faults": list(settings.faults),
+            "time_scale": AUTO if settings.paced else settings.time_scale, "faults": list(settings.faults),
             "models": {"stage": settings.stage_model, "imu": settings.imu_model,
                        "tilt": settings.tilt_model},
             **({"can": settings.can} if settings.can else {})}
@@ -322,7 +335,8 @@ def _start_event(ctx: RunContext, imu: InertialStream, acc_info: dict[str, Any],
 
 
 def _sequence(ctx: RunContext, devices: tuple[Any, Any, Any], stop: StopFlag, previous: list[PositionMeans],
-              skip: set[int] | None, seq_kwargs: dict[str, Any] | None) -> list[PositionMeans]:
+              skip: set[int] | None, seq_kwargs: dict[str, Any] | None,
+              pace: AutoPace | None = None) -> list[PositionMeans]:
     """Run the position plan with the view's progress (and a caller's `on_progress` after it)."""
     tt, imu, acc = devices
     cfg = ctx.cfg
@@ -338,6 +352,8 @@ def _sequence(ctx: RunContext, devices: tuple[Any, Any, Any], stop: StopFlag, pr
         limits = SequencerLimits.from_options(stage_speed_deg_s=cfg.turntable.speed_deg_s,
                                               stage_settle_s=cfg.turntable.settle_s, **seq_kwargs)
         events = FedEventLog(ctx.rundir, ctx.motion_feed) if ctx.motion_feed is not None else ctx.rundir
+        if pace is not None:
+            events = PacedEventLog(events, pace)
         seq = Sequencer(tt, imu, acc, cfg.run, limits, allow_home=cfg.turntable.allow_home, rundir=events,
                         on_progress=on_progress, stop_flag=stop, skip=skip or set())
         try:
@@ -363,6 +379,7 @@ def measure(
     skip: set[int] | None = None,
     seq_kwargs: dict[str, Any] | None = None,
     prediction: dict[str, Any] | None = None,
+    pace_scale: Callable[[float], None] | None = None,
 ) -> dict[str, Any]:
     """One north find on the bench `cfg` describes: open the devices, run the sequence, save the
     run directory, return the result. A signal stops it: RunAborted (exit 130, 143 for SIGTERM)
@@ -370,7 +387,8 @@ def measure(
     (RunFailed) also saves first. `progress`: a progress view factory (RunContext.progress), None
     for none. `previous`/`skip`: a resumed run's positions already measured (and their plan
     indices); `rundir.session` > 1 then. `seq_kwargs` go to the Sequencer (an `on_progress` there
-    is called after the progress view)."""
+    is called after the progress view). `pace_scale`: sets a paced simulator's time scale
+    (--time-scale auto, runs.find_pace)."""
     ctx = RunContext(cfg, rundir, settings.truth() if settings else None, json_path, report, progress,
                      start_extra={"plan_prediction": prediction} if prediction else None)
     sim_info = _sim_info(settings)
@@ -383,7 +401,8 @@ def measure(
         # session's fit joins sessions from the logs (find_motion)
         one_session_fit = rundir.session == 1 and cfg.run.plan in MOTION_KINDS
         ctx.motion_feed = start_live_feed(imu) if one_session_fit else None
-        positions = _sequence(ctx, (tt, imu, acc), stop, list(previous or []), skip, seq_kwargs)
+        pace = AutoPace(pace_scale, rundir.log_event) if pace_scale is not None else None
+        positions = _sequence(ctx, (tt, imu, acc), stop, list(previous or []), skip, seq_kwargs, pace)
     result = _result(ctx, positions, complete=True)
     ctx.finish(result)
     return result
@@ -439,24 +458,36 @@ def save_partial(ctx: RunContext, positions: list[PositionMeans]) -> None:
 
 
 def pace_note(events: Sequence[dict[str, Any]]) -> str | None:
-    """One line when a simulated run went faster than this host keeps up with: firmware-sim drops
-    what its client leaves unread for a second of wall time, so at a time scale above 1 with no
-    fault injected, samples lost on a link (IMU bytes, CAN frames) mean the host fell behind — not
-    the bench. None otherwise."""
+    """One line when a simulated run went faster than this host keeps up with, None otherwise.
+
+    firmware-sim drops what its client leaves unread for a second of wall time, so at a time scale
+    above 1 with no fault injected, samples lost on a link (IMU bytes, CAN frames) mean the host fell
+    behind — not the bench. And device time runs on while the host works between a dwell's end and
+    the next move: a median `before_move_s` above find_pace.KEEP_UP_S says the gaps between dwells
+    were stretched by the host (--time-scale auto paces itself by the same measure)."""
     start = next((e for e in events if e.get("event") == "start"), None)
     sim = (start or {}).get("simulate") or {}
-    scale = float(sim.get("time_scale") or 1.0)
+    scales = [float(e["scale"]) for e in events if e.get("event") == "time_scale"]
+    scale = scales[-1] if scales else float(sim.get("time_scale") or 1.0)
     if scale <= 1.0 or sim.get("faults"):
         return None
+    flag = f"--time-scale {scale:g}" + (" (auto)" if scales else "")
     stats = [e for e in events if e.get("event") == "stats"]
     imu = sum(int(e.get("imu", {}).get("lost_samples", 0)) for e in stats)
     crc = sum(int(e.get("imu", {}).get("bad_crc", 0)) for e in stats)
     acc = sum(int(e.get("accel", {}).get("lost_samples", 0)) for e in stats)
-    if not (imu or crc or acc):
+    if imu or crc or acc:
+        return (f"at {flag} this host did not keep up: the IMU link lost {imu:,} samples "
+                f"({crc:,} bad CRCs), the accelerometer {acc:,} (firmware-sim drops what is left unread "
+                "for 1 s of wall time); run at a lower --time-scale")
+    lags = [float(e["before_move_s"]) for e in events
+            if e.get("event") == "position" and e.get("before_move_s") is not None]
+    lag = float(np.median(lags)) if lags else 0.0
+    if lag <= KEEP_UP_S:
         return None
-    return (f"at --time-scale {scale:g} this host did not keep up: the IMU link lost {imu:,} samples "
-            f"({crc:,} bad CRCs), the accelerometer {acc:,} (firmware-sim drops what is left unread for "
-            "1 s of wall time); run at a lower --time-scale")
+    return (f"at {flag} this host did not keep up: device time ran on {lag:.1f} s (median) between a "
+            f"dwell's end and the next move, against ≤ {KEEP_UP_S:g} s when it keeps up; the gaps between "
+            "dwells were stretched by that (nothing lost) — run at a lower --time-scale, or auto")
 
 
 def failed(ctx: RunContext, fail: RunFailed, positions: list[PositionMeans]) -> None:
@@ -553,8 +584,12 @@ def measure_and_report(
     try:
         with contextlib.ExitStack() as stack:
             if settings is not None:
-                endpoints = stack.enter_context(SimulatorProcess(settings))
+                sim = SimulatorProcess(settings)
+                endpoints = stack.enter_context(sim)
                 cfg = bench_config(endpoints, settings.latitude_deg, cfg)
+                if settings.paced:  # started at the highest scale (its buffers); paced from the start
+                    sim.set_time_scale(AUTO_START_SCALE)
+                    measure_kwargs["pace_scale"] = sim.set_time_scale
             # firmware-sim's slcan adapter is a pty: no USB adapter reset to wait 2 s for.
             slcan_pty = settings is not None and cfg.accelerometer.interface == "slcan"
             result = measure(cfg, rundir, settings=settings, json_path=json_path,
