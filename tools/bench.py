@@ -13,7 +13,8 @@ Rows:
   link's ceiling, which limits the time-scaled runs below.
 * **Driver CPU at 1 kHz real time** — ``python -m firmware_sim --time-scale 1`` as a subprocess,
   :class:`northfinder.drivers.imu.Imu` reading ~10 s: this process's CPU (``time.process_time``,
-  every thread) and the simulator's (``/proc/<pid>/stat``), as % of one core.
+  every thread) and the simulator's (``/proc/<pid>/stat``), as % of one core; then the same with the
+  CAN accelerometer at 100 Hz over slcan beside it (both streams of a find).
 * **Monte Carlo** — ``montecarlo.simulate`` + ``heading.solve_batch`` for an 8 × 60 s plan,
   trials per second (simulate + solve, and solve only).
 * **find end to end** — ``northfinder find --simulate --positions 8 --dwell 60`` at each time
@@ -253,6 +254,42 @@ def bench_driver_cpu(seconds: float, time_scale: float = 1.0) -> Row:
                f"firmware-sim {100 * c_sim / wall:.1f} % (all its devices); {got} samples in "
                f"{wall:.2f} s wall = {got / wall / REAL_TIME_HZ:.1f}× real time; lost ≥ {lost}, "
                f"{s1.bad_crc - s0.bad_crc} bad CRC, {s1.resyncs - s0.resyncs} resyncs")
+
+
+def bench_driver_cpu_with_can(seconds: float, accel_rate_hz: float = 100.0) -> Row:
+    """The bench's two streams at real time, as a find reads them: the KVH IMU at 1 kHz and the
+    CAN accelerometer at `accel_rate_hz` over slcan (northfinder's ChunkedSlcanBus on firmware-sim's
+    adapter pty), both read by this thread: CPU of this process (every thread) and the sim's."""
+    from northfinder.drivers.accelerometer import Accelerometer
+
+    proc, endpoints = start_sim(1.0)
+    can = endpoints["can"]
+    try:
+        with Imu(endpoints["imu"], timeout_s=5.0) as imu, \
+                Accelerometer(can["interface"], can["channel"], bitrate=can.get("bitrate", 500000),
+                              node_id=can.get("node_id", 0x10),
+                              bus_options={"sleep_after_open": 0.05}) as acc:
+            acc.wait_heartbeat()
+            acc.configure(rate_hz=accel_rate_hz)
+            acc.start_node()
+            acc.read(int(accel_rate_hz // 5))
+            imu.read(200)
+            imu.discard_pending()
+            acc.discard_pending()
+            c0_self, c0_sim, t0 = time.process_time(), proc_cpu_s(proc.pid), time.monotonic()
+            got_imu = got_acc = 0
+            while time.monotonic() - t0 < seconds:
+                got_imu += len(imu.read(250))
+                got_acc += len(acc.read(max(1, int(accel_rate_hz // 4))))
+            wall = time.monotonic() - t0
+            c_self, c_sim = time.process_time() - c0_self, proc_cpu_s(proc.pid) - c0_sim
+            lost = acc.stats.lost_samples
+    finally:
+        stop(proc)
+    return Row(f"driver CPU, IMU 1 kHz + CAN {accel_rate_hz:g} Hz in real time",
+               f"{100 * c_self / wall:.1f} % of one core (readers + this script)",
+               f"firmware-sim {100 * c_sim / wall:.1f} %; {got_imu} IMU and {got_acc} accelerometer samples "
+               f"in {wall:.1f} s; accelerometer lost {lost}")
 
 
 def bench_montecarlo(trials: int) -> list[Row]:
@@ -519,6 +556,7 @@ def main() -> int:
     rows.append(bench_slcan_client())
     rows.append(bench_slcan_client(ChunkedSlcanBus))
     rows.append(bench_driver_cpu(args.driver_s))
+    rows.append(bench_driver_cpu_with_can(args.driver_s))
     for k in [float(x) for x in args.imu_scales.split(",") if x.strip()]:
         rows.append(bench_driver_cpu(max(2.0, args.driver_s / 2), k))
     rows += bench_montecarlo(args.trials)
