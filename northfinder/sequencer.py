@@ -245,6 +245,10 @@ class Sequencer:
         """The table angle read during the last dwell (None once a move is commanded)."""
         self._last_dwell_end: int | None = None
         """Device index of the last kept dwell's last IMU sample."""
+        self._last_imu_index: int | None = None
+        """Device index of the last IMU sample read."""
+        self._accel_started_at: int | None = None
+        """The IMU's newest sample index just before the tilt sensor's last start command."""
 
     # -- helpers -----------------------------------------------------------------------------
     def _event(self, event: dict[str, Any]) -> None:
@@ -400,7 +404,9 @@ class Sequencer:
             return None
 
     def _read_imu(self, n: int) -> ImuBlock:
-        return self.imu.read_samples(n, self.limits.read_timeout_s)
+        block = self.imu.read_samples(n, self.limits.read_timeout_s)
+        self._last_imu_index = int(block.sample_index[-1])
+        return block
 
     def _has_gyro_z(self) -> bool:
         return self.imu.has_gyro_z()
@@ -481,12 +487,12 @@ class Sequencer:
     def dwell(self, index: int, target_deg: float, settle_s: float = 0.0) -> DwellData:
         """Collect dwell_s·rate IMU samples right after settling (in chunks, reporting live
         statistics), then dwell_s·rate accelerometer samples: those after its NMT start at READY,
-        less the first settle_s·rate of them (`SettleResult.rest_before_dwell_s`).
+        less the first settle_s·rate of them (:meth:`_accel_skip_s`: up to the settle's end).
 
         The two dwells need not coincide: both lie inside the same rest (the accelerometer was
-        started at or after READY, which is after the last window the IMU saw slewing, and settle_s
-        covers the IMU's settle from there; the next move is commanded only after both dwells have
-        arrived), so a CAN link that lags, or loses frames, shifts nothing.
+        started at or after READY and skips at least to the end of the IMU's settle; the next move
+        is commanded only after both dwells have arrived), so a CAN link that lags, or loses frames,
+        shifts nothing.
 
         What the host does between the IMU's last dwell sample and the next move command lets device
         time run on unseen, so the table angle is read during the dwell and the IMU's checks are made
@@ -654,14 +660,30 @@ class Sequencer:
             self.imu.discard_pending()  # what is left is from before the move command
         self._move(target)
         self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
-        # at READY: its first samples are skipped by the settle time
-        self.accel.resume(self._check_stop, self._event)
+        # at READY: its first samples are skipped until the settle's end
+        self._accel_started_at = None
+        self.accel.resume(self._check_stop, self._event, before_start=self._note_accel_start)
         settle = self.settle(expect_motion=travel_deg >= MIN_VISIBLE_MOVE_DEG, move_deg=travel_deg)
         self._homing_travel_deg = 0.0
         hb0, emcy0 = self.accel.counts()
-        data = self.dwell(i, target, settle.rest_before_dwell_s)
+        data = self.dwell(i, target, self._accel_skip_s(settle))
         hb1, emcy1 = self.accel.counts()
         return settle, data, (hb1 - hb0, emcy1 - emcy0)
+
+    def _note_accel_start(self) -> None:
+        self._accel_started_at = self.imu.newest_index()
+
+    def _accel_skip_s(self, settle: SettleResult) -> float:
+        """Device seconds of the tilt sensor's samples to drop after its start, so that its dwell
+        begins where the settle ended. On the IMU's clock: the newest IMU sample just before the
+        start command is at or behind the device time the command took effect (the IMU link lags,
+        never leads), so settle end − that index is the rest still to skip, or more — however late
+        the host sent the start. A model that cannot say its newest index: the start is taken to be
+        at READY and the settle after the motion is skipped (SettleResult.rest_before_dwell_s)."""
+        started, ended = self._accel_started_at, self._last_imu_index
+        if started is None or ended is None:
+            return settle.rest_before_dwell_s
+        return max(0.0, (ended + 1 - started) / float(self.imu.rate_hz))
 
     def _reconnect_imu(self, i: int, exc: DeviceError) -> bool:
         """After a failed IMU read: re-open its link if it vanished (InertialStream.recover) and log how

@@ -184,6 +184,12 @@ class InertialStream(ABC):
         as the model's decoder gives them from the raw log; None when the model does not tap."""
         return None
 
+    def newest_index(self) -> int | None:
+        """Device index of the newest sample decoded, read or not (None: none yet, or the model
+        cannot tell): at this host moment the unit's clock is at least there — behind it by the
+        link's latency, never ahead."""
+        return None
+
     def wait_decoded(self, n: int, timeout_s: float) -> bool | None:
         """Wait until `n` more samples have been decoded (read or not), at most `timeout_s` host
         seconds: True when they came, False on time-out; None when the model cannot tell (then

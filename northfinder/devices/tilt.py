@@ -117,8 +117,10 @@ class TiltSensor(ABC):
         self.stop_stream()
 
     def resume(self, check_stop: Callable[[], None], log_event: Callable[[dict[str, Any]], None],
-               quiet_s: float = 0.1, timeout_s: float = 10.0) -> None:
-        """Start again once everything sent before the last stop has arrived (and is dropped).
+               quiet_s: float = 0.1, timeout_s: float = 10.0,
+               before_start: Callable[[], None] | None = None) -> None:
+        """Start again once everything sent before the last stop has arrived (and is dropped);
+        `before_start` is called just before the start command (the caller notes the moment).
 
         A sensor whose stop report is off or lost (none within STOPPED_REPORT_WAIT_S; not waited for
         again until a report comes back): the link is drained until nothing arrives for quiet_s —
@@ -128,6 +130,8 @@ class TiltSensor(ABC):
         if waited:
             self._silent_at = None
             self.discard_pending()
+            if before_start is not None:
+                before_start()
             self.start_stream()
             return
         if self._silent_at != reports:
@@ -143,6 +147,8 @@ class TiltSensor(ABC):
                     break
             else:
                 time.sleep(0.02)
+        if before_start is not None:
+            before_start()
         self.start_stream()
 
     def read_samples(self, n: int, read_timeout_s: float) -> AccelBlock:

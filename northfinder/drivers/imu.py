@@ -111,6 +111,7 @@ class Imu(StreamReader):
         self._decoder = KvhDecoder()
         self._pending: list[tuple[np.ndarray, np.ndarray]] = []
         self._pending_n = 0
+        self._newest_index: int | None = None
         self._tap: list[tuple[np.ndarray, np.ndarray]] | None = None  # every decoded chunk (start_tap)
         self._first_index: int | None = None
         self._config_mode = False
@@ -215,6 +216,7 @@ class Imu(StreamReader):
             self._unknown_seen = len(unknown)
         if len(out):
             index, frames = out.sample_index, out.frames
+            self._newest_index = int(index[-1])
             if self._first_index is None:
                 self._first_index = int(index[0])
             if self._tap is not None:  # before the discard: the tap sees what a decode of imu.raw sees
@@ -328,6 +330,11 @@ class Imu(StreamReader):
             return frames_to_block(np.zeros(0, np.int64), np.zeros(0, kvh.FRAME_DTYPE), rate, fmt, units)
         return frames_to_block(np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks]),
                                rate, fmt, units)
+
+    def newest_index(self) -> int | None:
+        """Device index of the newest sample decoded (read or not); None before the first."""
+        with self._cond:
+            return self._newest_index
 
     def wait_decoded(self, n: int, timeout_s: float) -> bool:
         """Wait until `n` more samples have been decoded, at most `timeout_s` host seconds."""

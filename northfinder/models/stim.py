@@ -196,6 +196,7 @@ class StimImu(StreamReader, InertialStream):
         self._stream: StimStream | None = None
         self._pending: list[tuple[np.ndarray, stim.StimSamples]] = []
         self._pending_n = 0
+        self._newest_index: int | None = None
         self._stalls: list[int] = []
         self._mark_stall = False
         self._unknown_seen = 0
@@ -266,6 +267,7 @@ class StimImu(StreamReader, InertialStream):
             self._mark_stall = False
         self._pending.append((index, s))
         self._pending_n += len(index)
+        self._newest_index = int(index[-1])
 
     # -- the role ----------------------------------------------------------------------------
     def read(self, n_samples: int, timeout_s: float | None = None) -> ImuBlock:
@@ -290,6 +292,11 @@ class StimImu(StreamReader, InertialStream):
             index = np.concatenate(idx_parts)
             gaps = [k for k in self._stream.unknown_gaps if index[0] <= k <= index[-1]]  # type: ignore[union-attr]
         return samples_to_block(index, _concat(rows), self.cfg, gaps)
+
+    def newest_index(self) -> int | None:
+        """Device index of the newest sample decoded (read or not); None before the first."""
+        with self._cond:
+            return self._newest_index
 
     def wait_decoded(self, n: int, timeout_s: float) -> bool:
         """Wait until `n` more samples have been decoded, at most `timeout_s` host seconds."""
