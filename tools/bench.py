@@ -312,7 +312,7 @@ def bench_montecarlo(trials: int) -> list[Row]:
 
 @dataclass
 class FindRun:
-    time_scale: float
+    time_scale: float | str
     wall_s: float
     code: int | None
     imu_lost: int | None = None
@@ -321,19 +321,52 @@ class FindRun:
     cpu_find_s: float | None = None
     cpu_sim_s: float | None = None
     error: str = ""
+    gaps_s: list[float] | None = None
+    """Device seconds from each dwell's last IMU sample to the next dwell's first (events.jsonl)."""
+    before_move_s: list[float] | None = None
+    """The position events' before_move_s: the host's share of each gap."""
+    scales: list[float] | None = None
+    """--time-scale auto: the scales the pace set, in order."""
+
+    def gaps_note(self) -> str:
+        if not self.gaps_s:
+            return "no gaps (fewer than 2 positions)"
+        g, lag = np.asarray(self.gaps_s), np.asarray(self.before_move_s or [np.nan])
+        out = (f"gap between dwells median {np.median(g):.1f} s device ({g.min():.0f}–{g.max():.0f}: "
+               f"{', '.join(f'{x:.0f}' for x in g)}), before_move_s median {np.nanmedian(lag):.1f}")
+        return out + (f"; scales {' → '.join(f'{k:g}' for k in self.scales)}" if self.scales else "")
 
     @property
     def lossless(self) -> bool:
         return self.code == 0 and self.imu_lost == 0 and self.accel_lost == 0
 
 
-def find_cmd(time_scale: float, out: Path, seed: int) -> list[str]:
+def find_cmd(time_scale: float | str, out: Path, seed: int) -> list[str]:
     return ["-m", "northfinder", "find", "--simulate", "--positions", "8", "--dwell", "60",
-            "--time-scale", f"{time_scale:g}", "--seed", str(seed), "--no-report",
+            "--time-scale", _scale_text(time_scale), "--seed", str(seed), "--no-report",
             "--json", str(out / "result.json"), "--out", str(out / "run")]
 
 
-def run_find(time_scale: float, timeout_s: float, seed: int, prefix: list[str] | None = None) -> FindRun:
+def _scale_text(time_scale: float | str) -> str:
+    return time_scale if isinstance(time_scale, str) else f"{time_scale:g}"
+
+
+def _read_gaps(run: FindRun, events_path: Path) -> None:
+    """The run's gaps between dwells, the host's share of them and an auto run's scales."""
+    if not events_path.exists():
+        return
+    events = [json.loads(ln) for ln in events_path.read_text().splitlines() if ln.strip()]
+    pos = [e for e in events if e.get("event") == "position"]
+    start = next((e for e in events if e.get("event") == "start"), {})
+    rate = float(start.get("imu", {}).get("rate_hz", 1000))
+    run.gaps_s = [(b["imu"]["first_index"] - a["imu"]["last_index"]) / rate
+                  for a, b in zip(pos, pos[1:], strict=False)]
+    run.before_move_s = [float(p["before_move_s"]) for p in pos if p.get("before_move_s") is not None]
+    run.scales = [float(e["scale"]) for e in events if e.get("event") == "time_scale"] or None
+
+
+def run_find(time_scale: float | str, timeout_s: float, seed: int,
+             prefix: list[str] | None = None) -> FindRun:
     """One `northfinder find --simulate` as a user runs it; CPU of it and of its simulator."""
     out = Path(tempfile.mkdtemp(prefix="nf-bench-"))
     argv = [sys.executable, *(prefix or []), *find_cmd(time_scale, out, seed)]
@@ -376,6 +409,7 @@ def run_find(time_scale: float, timeout_s: float, seed: int, prefix: list[str] |
     else:
         tail = stderr.decode("utf-8", "replace").strip().splitlines()
         run.error = tail[-1] if tail else f"exit {code}, no result.json"
+    _read_gaps(run, out / "run" / "events.jsonl")
     if code != 0 and not run.error:
         run.error = f"exit {code}"
     shutil.rmtree(out, ignore_errors=True)
@@ -405,8 +439,8 @@ def bench_find(scales: list[float], timeout_s: float, seed: int) -> tuple[list[R
         if r.imu_lost is None:
             note = f"failed: {r.error}; {cpu}"
         else:
-            note = (f"lost IMU {r.imu_lost}, accel {r.accel_lost}; device {r.device_s:.1f} s measured; {cpu}"
-                    + (f"; {r.error}" if r.error else ""))
+            note = (f"lost IMU {r.imu_lost}, accel {r.accel_lost}; device {r.device_s:.1f} s measured; "
+                    f"{cpu}; {r.gaps_note()}" + (f"; {r.error}" if r.error else ""))
         rows.append(Row(f"find 8 × 60 s at time scale {k:g}", f"{r.wall_s:.1f} s wall", note))
         print(f"  … time scale {k:g}: {r.wall_s:.1f} s wall, {note}", file=sys.stderr, flush=True)
         if r.lossless:
@@ -515,6 +549,20 @@ def _sample_child(time_scale: float, seed: int, period_s: float = 0.005, top: in
 # --------------------------------------------------------------------------------------------
 
 
+def bench_gaps(scales: str, timeout_s: float, seed: int) -> list[Row]:
+    """One find per scale: the gaps between dwells in device time (unchanged from 10× while the
+    host keeps up), the host's share (before_move_s), the wall time, the losses."""
+    rows = []
+    for text in (s.strip() for s in scales.split(",") if s.strip()):
+        k: float | str = text if text == "auto" else float(text)
+        r = run_find(k, timeout_s, seed)
+        lost = "failed" if r.imu_lost is None else f"lost IMU {r.imu_lost}, accel {r.accel_lost}"
+        rows.append(Row(f"find 8 × 60 s at {_scale_text(k)}", f"{r.wall_s:.1f} s wall",
+                        f"{lost}; {r.gaps_note()}" + (f"; {r.error}" if r.error else "")))
+        print(f"  … {_scale_text(k)}: {rows[-1].figure}, {rows[-1].note}", file=sys.stderr, flush=True)
+    return rows
+
+
 def print_table(rows: list[Row]) -> None:
     w1 = max(len(r.what) for r in rows)
     w2 = max(len(r.figure) for r in rows)
@@ -534,6 +582,9 @@ def main() -> int:
     p.add_argument("--trials", type=int, default=10_000, help="Monte Carlo trials per batch")
     p.add_argument("--scales", default="100,50,20,15,10", help="time scales to try for find, comma-separated")
     p.add_argument("--find-timeout-s", type=float, default=300.0, help="wall limit per find run")
+    p.add_argument("--gaps", metavar="SCALES", default=None,
+                   help="only: one 8 × 60 s find at each scale (comma-separated, `auto` allowed) and its "
+                   "device-time gaps between dwells, wall time and losses")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--skip-find", action="store_true")
     p.add_argument("--profile", action="store_true",
@@ -551,6 +602,10 @@ def main() -> int:
     for line in host_lines():
         print(line)
     print(flush=True)
+    if args.gaps is not None:
+        print_table(bench_gaps(args.gaps, args.find_timeout_s, args.seed))
+        print(f"\nload avg  {' '.join(f'{x:.2f}' for x in os.getloadavg())} at the end")
+        return 0
     rows = bench_decoder(args.frames, args.chunk_bytes)
     rows.append(bench_can())
     rows.append(bench_slcan_client())
