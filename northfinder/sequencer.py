@@ -29,11 +29,13 @@ from northfinder.devices.stage import RotaryStage, StageFault
 from northfinder.devices.tilt import AccelBlock, TiltSensor
 from northfinder.errors import ConfigError, DeviceError, NorthfinderError
 from northfinder.estimators.dwell import (
+    DisturbanceWindows,
     DwellLimits,
     DwellVerdict,
     accel_dwell_verdict,
     combine_verdicts,
     imu_dwell_verdict,
+    imu_window,
 )
 from northfinder.estimators.means import PositionMeans, position_means
 from northfinder.estimators.plan import MOTION_KINDS, sweep_targets_deg
@@ -505,6 +507,7 @@ class Sequencer:
         if n_grid > 1:
             self._align_to_grid(n_grid)
         blocks = []
+        windows = DisturbanceWindows(imu_window(rate, self.limits.dwell))
         got = 0
         s1 = np.zeros(3)
         s2 = np.zeros(3)
@@ -514,6 +517,7 @@ class Sequencer:
             block = self._read_imu(min(n_chunk, n_total - got))
             blocks.append(block)
             g = np.asarray(block.gyro_rad_s) / DPH
+            windows.add(np.hstack([g, np.asarray(block.accel_g)]))
             got += g.shape[0]
             ok = np.isfinite(g)  # samples flagged not valid are NaN: left out
             n_ok += ok.sum(axis=0)
@@ -537,7 +541,7 @@ class Sequencer:
             if self._rest_angle_deg is None:
                 self._rest_angle_deg = float(self.turntable.angle_deg())  # at rest: any time in the dwell
         self._check_stop()
-        imu_verdict = self._imu_verdict(blocks)  # while the tilt sensor's dwell is still arriving
+        imu_verdict = self._imu_verdict(blocks, windows)  # while the tilt sensor's dwell arrives
         skip = int(np.ceil(settle_s * self.accel_rate_hz))
         if skip > 0:
             self._read_accel(skip)
@@ -698,10 +702,10 @@ class Sequencer:
         self._event({"event": "imu_reconnect", "index": i, "ok": True, **outcome, "error": str(exc)})
         return True
 
-    def _imu_verdict(self, blocks: list[ImuBlock]) -> DwellVerdict:
+    def _imu_verdict(self, blocks: list[ImuBlock], windows: DisturbanceWindows) -> DwellVerdict:
         """The IMU's share of why a dwell must be measured again (estimators.dwell)."""
         return imu_dwell_verdict(blocks, imu_rate_hz=float(self.imu.rate_hz), gyro_axes=self._gyro_axes(),
-                                 stalls=self.imu.stall_indices, limits=self.limits.dwell)
+                                 stalls=self.imu.stall_indices, limits=self.limits.dwell, windows=windows)
 
     def _accel_verdict(self, accel_block: AccelBlock) -> DwellVerdict:
         """The tilt sensor's share of why a dwell must be measured again (estimators.dwell)."""

@@ -68,6 +68,65 @@ def disturbance_valid(samples: np.ndarray, window: int) -> tuple[float, int]:
     return best
 
 
+class DisturbanceWindows:
+    """:func:`disturbance_valid` built as a dwell's samples arrive: per column and window of `window`
+    samples its mean and the std of its first differences, so that the verdict at the dwell's end is
+    a median over the windows, not a pass over every sample (the host's work between a dwell's end
+    and the next move lets a time-scaled simulator's device time run on). Each column's windows are
+    reduced as the batch reduces them (a contiguous column reshaped to windows), so :meth:`z` equals
+    :func:`disturbance_valid` on the concatenated samples bit for bit. A column must be wholly valid
+    or wholly NaN (an axis the unit lacks); one that mixes both (samples flagged not valid) makes
+    :meth:`z` None, and the caller runs the batch test on the samples."""
+
+    def __init__(self, window: int) -> None:
+        self.window = int(window)
+        self._valid: np.ndarray | None = None
+        """Per column: True all samples valid so far, False all NaN."""
+        self._carry: list[np.ndarray] = []
+        self._means: list[list[np.ndarray]] = []
+        self._diff_std: list[list[np.ndarray]] = []
+        self.mixed = False
+
+    def add(self, samples: np.ndarray) -> None:
+        x = np.asarray(samples, dtype=np.float64)
+        if self.mixed or x.shape[0] == 0:
+            return
+        finite = np.isfinite(x)
+        valid, none = finite.all(axis=0), ~finite.any(axis=0)
+        if np.any(~valid & ~none) or (self._valid is not None and np.any(valid != self._valid)):
+            self.mixed = True
+            return
+        if self._valid is None:
+            self._valid = valid
+            cols = int(valid.sum())
+            self._carry = [np.zeros(0)] * cols
+            self._means, self._diff_std = [[] for _ in range(cols)], [[] for _ in range(cols)]
+        for k, c in enumerate(np.flatnonzero(valid)):
+            col = np.concatenate([self._carry[k], x[:, c]])
+            n_win = col.size // self.window
+            if n_win:
+                blocks = col[: n_win * self.window].reshape(n_win, self.window, 1)
+                self._means[k].append(blocks.mean(axis=1))
+                self._diff_std[k].append(np.std(np.diff(blocks, axis=1), axis=1))
+            self._carry[k] = col[n_win * self.window :]
+
+    def z(self) -> tuple[float, int] | None:
+        """(largest z, its window index) as :func:`disturbance_valid` gives it; None when a column
+        mixed valid and NaN samples."""
+        if self.mixed:
+            return None
+        best = (0.0, -1)
+        for means_parts, std_parts in zip(self._means, self._diff_std, strict=True):
+            if not means_parts or sum(len(m) for m in means_parts) < 3:
+                continue
+            means, diff_std = np.vstack(means_parts), np.vstack(std_parts)
+            sigma = np.maximum(np.median(diff_std, axis=0) / np.sqrt(2.0), 0.0)
+            z = np.abs(means - np.median(means, axis=0)) / (np.maximum(sigma, 1e-300) / np.sqrt(self.window))
+            j = int(np.argmax(z.max(axis=1)))
+            best = max(best, (float(z[j].max()), j))
+        return best
+
+
 def invalid_problems(gyro_dph: np.ndarray, n: int, gyro_axes: str, max_lost_fraction: float) -> list[str]:
     """Too many samples flagged not valid on a gyro axis the fit needs: measured again like a dwell
     that lost them."""
@@ -107,10 +166,16 @@ class DwellVerdict:
     disturbances: list[str]
 
 
+def imu_window(imu_rate_hz: float, limits: DwellLimits) -> int:
+    """The IMU's disturbance window [samples]."""
+    return max(10, int(round(limits.disturbance_window_s * float(imu_rate_hz))))
+
+
 def imu_dwell_verdict(blocks: list[Any], *, imu_rate_hz: float, gyro_axes: str, stalls: list[int],
-                      limits: DwellLimits) -> DwellVerdict:
+                      limits: DwellLimits, windows: DisturbanceWindows | None = None) -> DwellVerdict:
     """The IMU's share of :func:`dwell_problems` (its ImuBlocks): the sequencer works it out while
-    the tilt sensor's dwell is still arriving."""
+    the tilt sensor's dwell is still arriving. `windows`: the same blocks' DisturbanceWindows, kept
+    as they arrived (gyro in °/h, then accelerometer), which spares the pass over the samples."""
     rate = float(imu_rate_hz)
     idx = np.concatenate([np.asarray(b.sample_index) for b in blocks])
     gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0) / DPH
@@ -118,9 +183,12 @@ def imu_dwell_verdict(blocks: list[Any], *, imu_rate_hz: float, gyro_axes: str, 
     counts += invalid_problems(gyro, idx.size, gyro_axes, limits.max_lost_fraction)
     if counts:
         return DwellVerdict(counts, [])
-    imu_acc = np.concatenate([np.asarray(b.accel_g) for b in blocks], axis=0)
-    w = max(10, int(round(limits.disturbance_window_s * rate)))
-    z, j = disturbance_valid(np.hstack([gyro, imu_acc]), w)
+    w = imu_window(rate, limits)
+    kept = windows.z() if windows is not None and windows.window == w else None
+    if kept is None:
+        imu_acc = np.concatenate([np.asarray(b.accel_g) for b in blocks], axis=0)
+        kept = disturbance_valid(np.hstack([gyro, imu_acc]), w)
+    z, j = kept
     if z <= DISTURBANCE_Z:
         return DwellVerdict([], [])
     return DwellVerdict([], [f"disturbance: IMU window {j} ({j * w / rate:.2f} s into the dwell) is "
