@@ -251,6 +251,8 @@ class Sequencer:
         """Device index of the last IMU sample read."""
         self._accel_started_at: int | None = None
         """The IMU's newest sample index just before the tilt sensor's last start command."""
+        self._commanded: tuple[float, float] | None = None
+        """(target, travel) of a move commanded before its position's attempt began."""
 
     # -- helpers -----------------------------------------------------------------------------
     def _event(self, event: dict[str, Any]) -> None:
@@ -345,12 +347,15 @@ class Sequencer:
         self._event({"event": "stage_error", "target_deg": target_deg, "attempt": attempt, "error": str(exc),
                      "state": exc.state_name, "reason": exc.reason})
 
-    def _move(self, target_deg: float) -> None:
-        """Move and wait for READY. A stage fault (following error / stall → disabled) is logged, the
-        stage re-enabled and the move tried once more; a second failure stops the stage and the run
-        (RunFailed, the data so far kept)."""
+    def _move(self, target_deg: float, commanded: bool = False) -> None:
+        """Move (`commanded`: the move command was sent already) and wait for READY. A stage fault
+        (following error / stall → disabled) is logged, the stage re-enabled and the move tried once
+        more; a second failure stops the stage and the run (RunFailed, the data so far kept)."""
         try:
-            self._move_once(target_deg)
+            if commanded:
+                self._poll_ready(f"the move to {target_deg:g}°", self._move_deg)
+            else:
+                self._move_once(target_deg)
             return
         except StageFault as exc:
             self._stage_error(target_deg, 1, exc)
@@ -568,10 +573,9 @@ class Sequencer:
             )
         self._plan = self.plan_deg()
         n = len(self._plan)
-        for i, target in enumerate(self._plan):
-            if i in self.skip:
-                continue
-            self._measure_position(i, target)
+        todo = [i for i in range(n) if i not in self.skip]
+        for i, after in zip(todo, todo[1:] + [None], strict=True):
+            self._measure_position(i, self._plan[i], None if after is None else self._plan[after])
         self.accel.pause()
         if self.run_cfg.return_to_start:
             self.on_progress(Progress(n, n, "return", self._plan[0]))
@@ -608,9 +612,11 @@ class Sequencer:
             "imu": {"first_index": int(idx[0]), "last_index": int(idx[-1]), "samples": int(idx.size)},
         })
 
-    def _measure_position(self, i: int, target: float) -> PositionMeans:
+    def _measure_position(self, i: int, target: float, next_target: float | None = None) -> PositionMeans:
         """Move, settle and dwell; measure again (up to max_attempts) when the IMU or the
-        accelerometer timed out or vanished, lost too much, or the dwell shows a disturbance."""
+        accelerometer timed out or vanished, lost too much, or the dwell shows a disturbance. A kept
+        dwell commands the move to `next_target` before it is recorded: the host's bookkeeping then
+        runs while the table turns, not while a time-scaled simulator's device time runs on."""
         n = len(self._plan)
         reasons: list[str] = []
         for attempt in range(1, self.limits.max_attempts + 1):
@@ -628,10 +634,14 @@ class Sequencer:
                 problems = combine_verdicts(data.imu_verdict, self._accel_verdict(data.accel_block))
                 if not problems:
                     self._check_stop()
-                    self._flush_logs()
-                    extra = {"attempt": attempt, "heartbeats": counts[0], "emcy": counts[1]}
-                    means = self._record(i, target, data.table_angle_deg, settle, data.blocks,
-                                         data.accel_block, extra)
+                    try:
+                        if next_target is not None:
+                            self._command_move(next_target)
+                    finally:  # recorded even if the next move could not be commanded
+                        self._flush_logs()
+                        extra = {"attempt": attempt, "heartbeats": counts[0], "emcy": counts[1]}
+                        means = self._record(i, target, data.table_angle_deg, settle, data.blocks,
+                                             data.accel_block, extra)
                     self.on_progress(Progress(i + 1, n, "measured", target, dwell_done_s=self.run_cfg.dwell_s,
                                               dwell_s=self.run_cfg.dwell_s, gyro_mean_dph=means.gyro_dph,
                                               settle_s=settle.settle_s, means=means))
@@ -648,11 +658,9 @@ class Sequencer:
             list(self.positions),
         )
 
-    def _attempt(self, i: int, target: float) -> tuple[SettleResult, DwellData, tuple[int, int]]:
-        """One measurement of a position: move (the tilt sensor paused), settle, dwell; the tilt
-        sensor's status and fault reports during the dwell."""
-        n = len(self._plan)
-        self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
+    def _command_move(self, target: float) -> float:
+        """The first half of a move: the tilt sensor paused, the IMU's older samples dropped, the
+        move commanded; returns the travel the settle expects to see [deg]."""
         here = self._rest_angle_deg if self._rest_angle_deg is not None else float(self.turntable.angle_deg())
         self._rest_angle_deg = None
         self._move_deg = target - here
@@ -662,7 +670,20 @@ class Sequencer:
         self.accel.pause()  # quiet during the move; started again after the settle
         if not self._homing_travel_deg:
             self.imu.discard_pending()  # what is left is from before the move command
-        self._move(target)
+        self.turntable.start_move(target)
+        self._commanded = (target, travel_deg)
+        return travel_deg
+
+    def _attempt(self, i: int, target: float) -> tuple[SettleResult, DwellData, tuple[int, int]]:
+        """One measurement of a position: move (the tilt sensor paused; commanded already when the
+        last position's dwell was kept), settle, dwell; the tilt sensor's status and fault reports
+        during the dwell."""
+        n = len(self._plan)
+        self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
+        commanded = self._commanded is not None and self._commanded[0] == target
+        travel_deg = self._commanded[1] if commanded else self._command_move(target)
+        self._commanded = None
+        self._move(target, commanded=True)
         self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
         # at READY: its first samples are skipped until the settle's end
         self._accel_started_at = None
