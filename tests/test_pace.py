@@ -50,6 +50,16 @@ def test_the_pace_doubles_with_room_halves_when_behind_and_stays_in_its_bounds()
     assert [e["scale"] for e in logged] == [40.0, 80.0, 160.0, 80.0, 40.0, 20.0, 10.0, 5.0, 2.5, 1.25, 1.0]
 
 
+def test_with_faults_injected_the_lag_alone_paces():
+    asked = []
+    pace = P.AutoPace(asked.append, lambda _e: None, start_scale=40.0, losses_count=False)
+    pace.on_event(_position(1, P.ROOM_S, imu_lost=50))  # the fault's loss, not the host's
+    pace.on_event({"event": "remeasure", "index": 1, "attempt": 1, "reason": "imu lost 50 of 1000"})
+    assert pace.scale == 80.0
+    pace.on_event(_position(2, 2 * P.KEEP_UP_S))
+    assert pace.scale == 40.0
+
+
 def test_pace_note_says_when_device_time_ran_on_between_dwells():
     start = {"event": "start", "simulate": {"time_scale": 120.0, "faults": []}}
     stats = {"event": "stats", "imu": {"lost_samples": 0, "bad_crc": 0}, "accel": {"lost_samples": 0}}

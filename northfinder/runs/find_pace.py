@@ -34,11 +34,12 @@ def time_scale_arg(text: str) -> float | str:
     return float(text)
 
 
-def host_kept_up(event: dict[str, Any]) -> bool | None:
+def host_kept_up(event: dict[str, Any], losses_count: bool = True) -> bool | None:
     """Whether one position event shows the host keeping up: False when a link lost samples in the
-    dwell or `before_move_s` exceeds KEEP_UP_S; None when the event cannot tell (the first position
-    has no dwell before it)."""
-    if int(event.get("imu", {}).get("lost", 0)) or int(event.get("accel", {}).get("lost", 0)):
+    dwell (unless `losses_count` is off: faults injected on purpose) or `before_move_s` exceeds
+    KEEP_UP_S; None when the event cannot tell (the first position has no dwell before it)."""
+    lost = int(event.get("imu", {}).get("lost", 0)) or int(event.get("accel", {}).get("lost", 0))
+    if lost and losses_count:
         return False
     lag = event.get("before_move_s")
     if lag is None:
@@ -56,11 +57,14 @@ def pace_line(events: list[dict[str, Any]]) -> str | None:
 
 class AutoPace:
     """Watches the run's events and sets firmware-sim's time scale (`set_scale`, e.g.
-    SimulatorProcess.set_time_scale); `log_event` records each change."""
+    SimulatorProcess.set_time_scale); `log_event` records each change. `losses_count` off (faults
+    injected): lost samples and re-measures are the faults', and the lag alone paces."""
 
     def __init__(self, set_scale: Callable[[float], None], log_event: Callable[[dict[str, Any]], None],
-                 start_scale: float = AUTO_START_SCALE, max_scale: float = AUTO_MAX_SCALE) -> None:
+                 start_scale: float = AUTO_START_SCALE, max_scale: float = AUTO_MAX_SCALE,
+                 losses_count: bool = True) -> None:
         self.set_scale, self.log_event = set_scale, log_event
+        self.losses_count = losses_count
         self.max_scale = float(max_scale)
         self.scale = min(float(start_scale), self.max_scale)
         self.set_scale(self.scale)
@@ -69,12 +73,12 @@ class AutoPace:
     def on_event(self, event: dict[str, Any]) -> None:
         """A logged event: after a position (or a re-measure) the scale may change."""
         kind = event.get("event")
-        if kind == "remeasure":
+        if kind == "remeasure" and self.losses_count:
             self._change(self.scale / 2.0, f"position {int(event.get('index', 0)) + 1} measured again")
             return
         if kind != "position":
             return
-        kept_up = host_kept_up(event)
+        kept_up = host_kept_up(event, self.losses_count)
         lag = event.get("before_move_s")
         if kept_up is False:
             self._change(self.scale / 2.0, "the host did not keep up", lag)
