@@ -123,3 +123,26 @@ class StreamReader:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class SampleQueue:
+    """What a sample stream's reader (a StreamReader subclass) tells of the samples it decoded and
+    queued for `read`: it keeps `_pending_n` (queued, not read yet) and `_newest_index` (device
+    index of the newest decoded) under the reader's Condition `_cond`."""
+
+    _cond: threading.Condition
+    _error: BaseException | None
+    _pending_n: int
+    _newest_index: int | None
+
+    def newest_index(self) -> int | None:
+        """Device index of the newest sample decoded (read or not); None before the first."""
+        with self._cond:
+            return self._newest_index
+
+    def wait_decoded(self, n: int, timeout_s: float) -> bool:
+        """Wait until `n` more samples have been decoded, at most `timeout_s` host seconds."""
+        with self._cond:
+            target = self._pending_n + int(n)
+            return self._cond.wait_for(lambda: self._pending_n >= target or self._error is not None,
+                                       timeout_s) and self._error is None

@@ -40,7 +40,7 @@ import numpy as np
 
 from northfinder.codecs import kvh
 from northfinder.codecs.kvh import ImuBlock, ImuStats, KvhDecoder, decode_imu_stream, frames_to_block
-from northfinder.drivers._stream import StreamReader
+from northfinder.drivers._stream import SampleQueue, StreamReader
 from northfinder.errors import ConfigError, DeviceError
 from northfinder.transport import SerialTransport
 
@@ -58,7 +58,7 @@ class _ByteTransport(Protocol):  # what the driver needs from SerialTransport (t
     def close(self) -> None: ...
 
 
-class Imu(StreamReader):
+class Imu(SampleQueue, StreamReader):
     """A KVH format-A IMU on a pyserial URL; a context manager with a background reader."""
 
     device = DEVICE
@@ -330,18 +330,6 @@ class Imu(StreamReader):
             return frames_to_block(np.zeros(0, np.int64), np.zeros(0, kvh.FRAME_DTYPE), rate, fmt, units)
         return frames_to_block(np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks]),
                                rate, fmt, units)
-
-    def newest_index(self) -> int | None:
-        """Device index of the newest sample decoded (read or not); None before the first."""
-        with self._cond:
-            return self._newest_index
-
-    def wait_decoded(self, n: int, timeout_s: float) -> bool:
-        """Wait until `n` more samples have been decoded, at most `timeout_s` host seconds."""
-        with self._cond:
-            target = self._pending_n + int(n)
-            return self._cond.wait_for(lambda: self._pending_n >= target or self._error is not None,
-                                       timeout_s) and self._error is None
 
     def discard_pending(self) -> int:
         """Drop samples decoded but not read yet (e.g. those from before a move); returns how many."""

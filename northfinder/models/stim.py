@@ -28,7 +28,7 @@ import numpy as np
 from northfinder.codecs import stim
 from northfinder.devices.imu import ImuAxes, ImuBlock, ImuDecoder, InertialStream
 from northfinder.devices.registry import ModelSpec
-from northfinder.drivers._stream import StreamReader
+from northfinder.drivers._stream import SampleQueue, StreamReader
 from northfinder.errors import DeviceError, InputError
 from northfinder.models._section import value
 from northfinder.transport import SerialTransport
@@ -183,7 +183,7 @@ def samples_to_block(index: np.ndarray, s: stim.StimSamples, cfg: StimConfig,
                     unknown_gaps=tuple(int(k) for k in unknown_gaps))
 
 
-class StimImu(StreamReader, InertialStream):
+class StimImu(SampleQueue, StreamReader, InertialStream):
     """A STIM in Normal Mode on a pyserial URL; a context manager with a background reader."""
 
     device = DEVICE
@@ -292,18 +292,6 @@ class StimImu(StreamReader, InertialStream):
             index = np.concatenate(idx_parts)
             gaps = [k for k in self._stream.unknown_gaps if index[0] <= k <= index[-1]]  # type: ignore[union-attr]
         return samples_to_block(index, _concat(rows), self.cfg, gaps)
-
-    def newest_index(self) -> int | None:
-        """Device index of the newest sample decoded (read or not); None before the first."""
-        with self._cond:
-            return self._newest_index
-
-    def wait_decoded(self, n: int, timeout_s: float) -> bool:
-        """Wait until `n` more samples have been decoded, at most `timeout_s` host seconds."""
-        with self._cond:
-            target = self._pending_n + int(n)
-            return self._cond.wait_for(lambda: self._pending_n >= target or self._error is not None,
-                                       timeout_s) and self._error is None
 
     def discard_pending(self) -> int:
         with self._cond:
