@@ -575,7 +575,7 @@ class Sequencer:
         n = len(self._plan)
         todo = [i for i in range(n) if i not in self.skip]
         for i, after in zip(todo, todo[1:] + [None], strict=True):
-            self._measure_position(i, self._plan[i], None if after is None else self._plan[after])
+            self._measure_position(i, self._plan[i], after)
         self.accel.pause()
         if self.run_cfg.return_to_start:
             self.on_progress(Progress(n, n, "return", self._plan[0]))
@@ -612,11 +612,12 @@ class Sequencer:
             "imu": {"first_index": int(idx[0]), "last_index": int(idx[-1]), "samples": int(idx.size)},
         })
 
-    def _measure_position(self, i: int, target: float, next_target: float | None = None) -> PositionMeans:
+    def _measure_position(self, i: int, target: float, after: int | None = None) -> PositionMeans:
         """Move, settle and dwell; measure again (up to max_attempts) when the IMU or the
         accelerometer timed out or vanished, lost too much, or the dwell shows a disturbance. A kept
-        dwell commands the move to `next_target` before it is recorded: the host's bookkeeping then
-        runs while the table turns, not while a time-scaled simulator's device time runs on."""
+        dwell commands the move to plan position `after` before it is recorded: the host's
+        bookkeeping then runs while the table turns, not while a time-scaled simulator's device time
+        runs on."""
         n = len(self._plan)
         reasons: list[str] = []
         for attempt in range(1, self.limits.max_attempts + 1):
@@ -635,8 +636,8 @@ class Sequencer:
                 if not problems:
                     self._check_stop()
                     try:
-                        if next_target is not None:
-                            self._command_move(next_target)
+                        if after is not None:
+                            self._command_move(after, self._plan[after])
                     finally:  # recorded even if the next move could not be commanded
                         self._flush_logs()
                         extra = {"attempt": attempt, "heartbeats": counts[0], "emcy": counts[1]}
@@ -658,9 +659,11 @@ class Sequencer:
             list(self.positions),
         )
 
-    def _command_move(self, target: float) -> float:
-        """The first half of a move: the tilt sensor paused, the IMU's older samples dropped, the
-        move commanded; returns the travel the settle expects to see [deg]."""
+    def _command_move(self, i: int, target: float) -> float:
+        """The first half of a move to plan position i: the view told, the tilt sensor paused, the
+        IMU's older samples dropped, the move commanded; returns the travel the settle expects to
+        see [deg]."""
+        self.on_progress(Progress(i + 1, len(self._plan), "move", target, 0.0, self.run_cfg.dwell_s))
         here = self._rest_angle_deg if self._rest_angle_deg is not None else float(self.turntable.angle_deg())
         self._rest_angle_deg = None
         self._move_deg = target - here
@@ -679,9 +682,8 @@ class Sequencer:
         last position's dwell was kept), settle, dwell; the tilt sensor's status and fault reports
         during the dwell."""
         n = len(self._plan)
-        self.on_progress(Progress(i + 1, n, "move", target, 0.0, self.run_cfg.dwell_s))
         commanded = self._commanded is not None and self._commanded[0] == target
-        travel_deg = self._commanded[1] if commanded else self._command_move(target)
+        travel_deg = self._commanded[1] if commanded else self._command_move(i, target)
         self._commanded = None
         self._move(target, commanded=True)
         self.on_progress(Progress(i + 1, n, "settle", target, 0.0, self.run_cfg.dwell_s))
