@@ -57,7 +57,7 @@ def main() -> int:
         n = int(round(args.device_s * args.rate_hz))
         want = MESSAGE_BYTES * (n + 1)
         port = serial.Serial(endpoints["imu"], 921600, timeout=0.5)
-        # The clock starts once the simulator has loaded scipy (after the endpoints line): measure
+        # The clock starts with the simulator's loop (about when the endpoints line comes): measure
         # the stream from its first bytes, and say how long they took to come.
         t_open = time.monotonic()
         raw = bytearray(port.read(1))
