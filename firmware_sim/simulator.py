@@ -385,6 +385,8 @@ class Simulator:
         self.last_t = 0.0
         """Device time of the loop's last tick."""
         self._clock_running = False
+        self._client_seen_wall_s: float | None = None
+        """Wall time since which a client has had a data port open (held scenarios; None: none has)."""
         self._endpoints: dict[str, Any] | None = None
 
     # -- building ---------------------------------------------------------------------------
@@ -621,7 +623,6 @@ class Simulator:
 
     def _run(self) -> None:
         self._can_powered = False
-        self._client_seen_wall_s: float | None = None
         if not self.holds_for_client:
             self.clock.start()
             self._clock_running = True
