@@ -600,9 +600,10 @@ class Simulator:
         Why: the vehicle stands still for its first 10 s and a GNSS/INS alignment levels the IMU on
         the first 5 s it reads (northfinder's align-gnss refuses a moving start), so where device
         time stands when the client's first sample comes must not depend on how long the host took
-        to start the client — 10 s of device time are 0.4 s of wall time at 25×. The bench and the
-        ship have no such start (and benches and tests that never connect must run): their device
-        time starts with the loop.
+        to start the client — 10 s of device time are 0.4 s of wall time at 25×. Either data port
+        starts it, so that a client of the receiver alone gets its data; northfinder opens the IMU
+        first. The bench and the ship have no such start (and benches and tests that never connect
+        must run): their device time starts with the loop.
         """
         return self.config.scenario == "vehicle"
 
