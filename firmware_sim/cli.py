@@ -159,7 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "simulation to its host (northfinder find --time-scale auto)")
     p.add_argument("--scenario", metavar="NAME",
                    help="bench (turntable + IMU + CAN accelerometer, default) | ship (IMU on a swaying "
-                   "base) | vehicle (IMU + GNSS on a driving car)")
+                   "base) | vehicle (IMU + GNSS on a driving car; its device time starts when a client "
+                   "opens the imu or gnss port, so the client sees the 10 s still start)")
     p.add_argument("--sway", metavar="SPEC",
                    help=f"sway per axis, AXIS=AMP:PERIOD_S[:PHASE_DEG] (deg; m for surge/sway/heave), "
                    f"'none' for still; the ship's default is {SWAY_EXAMPLE!r} with phases from the seed")

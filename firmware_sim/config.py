@@ -48,7 +48,7 @@ STAGE_WOBBLE_URAD = (20.0, 5.0)
 """The bench stage's wobble, once and twice per turn, µrad (our choice; docs/simulator.md)."""
 GNSS_RATES_HZ = (1, 5, 10)
 """The sensor presets of docs/ARCHITECTURE.md (firmware_sim/physics/sensors.py), named here so that a
-wrong name is refused before the physics (and scipy) is imported."""
+wrong name is refused before the physics is imported."""
 
 
 class ConfigError(ValueError):

@@ -7,8 +7,10 @@ every device emit what it owes up to that device time. It sleeps in `select` bet
 Scenarios (`SimConfig.scenario`): `bench` — SMC100 turntable, KVH IMU, CAN accelerometer on a
 still (or swaying) platform; `ship` — the KVH IMU alone on a `SwayingPlatform`, at a lever arm
 from the centre of rotation; `vehicle` — the KVH IMU and an NMEA GNSS receiver on the
-`VehicleTrajectory`. `TruthLog` writes the world's truth as JSON lines for the device times a
-client needs (docs/simulator.md), with the events that tie a client's frames to device time.
+`VehicleTrajectory`, whose device time waits at 0 until a client has the IMU or GNSS port open, so
+that the client reads the vehicle's still start whatever the host's timing. `TruthLog` writes the
+world's truth as JSON lines for the device times a client needs (docs/simulator.md), with the
+events that tie a client's frames to device time.
 """
 
 from __future__ import annotations
@@ -48,7 +50,8 @@ CLIENT_STALL_WALL_S = 1.0
 """A connected IMU client may stop reading for this long (wall) before bytes are dropped."""
 CONNECT_GRACE_WALL_S = 0.05
 """A new IMU client gets its first frame this long (wall) after the IMU sees it: pyserial flushes
-its input right after opening, and a frame delivered before that flush would be lost unseen."""
+its input right after opening, and a frame delivered before that flush would be lost unseen. The
+vehicle's device time starts this long after a client has opened a data port (`holds_for_client`)."""
 TRUTH_BATCH_WALL_S = 0.1
 """The truth log computes and writes its samples in batches about this far apart (wall)."""
 
@@ -382,7 +385,8 @@ class Simulator:
         self.last_t = 0.0
         """Device time of the loop's last tick."""
         self._clock_running = False
-        self._warm = threading.Event()
+        self._client_seen_wall_s: float | None = None
+        """Wall time since which a client has had a data port open (held scenarios; None: none has)."""
         self._endpoints: dict[str, Any] | None = None
 
     # -- building ---------------------------------------------------------------------------
@@ -556,15 +560,14 @@ class Simulator:
 
     # -- running ----------------------------------------------------------------------------
     def start(self) -> dict[str, Any]:
-        """Open every port, start the loop thread at device time 0; return the endpoints."""
+        """Open every port, start the loop thread; return the endpoints.
+
+        Device time starts with the loop, except in a scenario that starts with a motion the client
+        must see from its beginning (`holds_for_client`): there it stays at 0 until a client has
+        one of the data ports open.
+        """
         if self._thread is not None:
             raise RuntimeError("simulator already started")
-        # The sensor models' filters need scipy.signal, which takes 0.5-3 s to import on a loaded
-        # machine: load it in a helper thread from now on, while the ports are built, and hold
-        # device time at 0 until it is there, so that the first samples are not a burst of
-        # catch-up. The loop runs meanwhile: the ports answer at once (a stage asked `1TS` says
-        # NOT REFERENCED).
-        threading.Thread(target=self._warm_up, name="firmware_sim-warm-up", daemon=True).start()
         try:
             self._build()
         except BaseException:
@@ -590,23 +593,55 @@ class Simulator:
             return self._can_powered
         return True
 
+    @property
+    def holds_for_client(self) -> bool:
+        """Whether device time waits at 0 for a client (`_client_ready`): the vehicle only.
+
+        Why: the vehicle stands still for its first 10 s and a GNSS/INS alignment levels the IMU on
+        the first 5 s it reads (northfinder's align-gnss refuses a moving start), so where device
+        time stands when the client's first sample comes must not depend on how long the host took
+        to start the client — 10 s of device time are 0.4 s of wall time at 25×. Either data port
+        starts it, so that a client of the receiver alone gets its data; northfinder opens the IMU
+        first. The bench and the ship have no such start (and benches and tests that never connect
+        must run): their device time starts with the loop.
+        """
+        return self.config.scenario == "vehicle"
+
+    def _data_ports(self) -> list[PtyPort]:
+        """The ports whose data a client of the held scenario reads: the IMU's and the receiver's."""
+        return [d.port for d in (self.imu, self.gnss) if isinstance(getattr(d, "port", None), PtyPort)]
+
+    def _client_ready(self) -> bool:
+        """A client has had a data port open for CONNECT_GRACE_WALL_S (pyserial flushes its input
+        right after opening: what came before would be lost unseen). The devices then power on
+        with that client listening: the IMU hands it every sample from k = 1, device time 0 on."""
+        now = time.monotonic()
+        if not any(port.connected for port in self._data_ports()):
+            self._client_seen_wall_s = None
+        elif self._client_seen_wall_s is None:
+            self._client_seen_wall_s = now
+        return self._client_seen_wall_s is not None and now - self._client_seen_wall_s >= CONNECT_GRACE_WALL_S
+
     def _run(self) -> None:
         self._can_powered = False
+        if not self.holds_for_client:
+            self.clock.start()
+            self._clock_running = True
         try:
             while not self._stop.is_set():
                 by_fd = {fd: d for d in self.devices if (fd := d.fileno()) is not None}
                 wfds = [p.fileno() for p in self._ports() if p.pending and not p.closed and p.connected]
                 readable, _, _ = select.select(list(by_fd), wfds, [], TICK_WALL_S)
-                if not self._clock_running and self._warm.is_set():
+                if not self._clock_running and self._client_ready():
                     self.clock.start()
                     self._clock_running = True
                 t = self.clock.now() if self._clock_running else 0.0
-                for fd in readable:
+                for fd in readable:  # held: commands are answered at device time 0
                     device = by_fd[fd]
                     if device.fileno() == fd:
                         device.on_readable(t)
                 for device in self.devices:
-                    if self._device_may_run(device):
+                    if self._clock_running and self._device_may_run(device):
                         device.advance(t)
                 for port in self._ports():
                     port.flush()
@@ -617,14 +652,9 @@ class Simulator:
             self.error = exc
             self.failed.set()
 
-    def _warm_up(self) -> None:
-        try:
-            import scipy.signal  # noqa: F401
-        finally:
-            self._warm.set()
-
     def now(self) -> float:
-        """Device seconds since start (0 until the loop has started device time)."""
+        """Device seconds since start (0 until the loop has started device time; the vehicle: until
+        a client has a data port open)."""
         return self.clock.now() if self._clock_running else 0.0
 
     def stop(self) -> None:
@@ -664,5 +694,5 @@ class Simulator:
         """Sleep the calling thread for `device_s` of device time (a test helper)."""
         deadline = time.monotonic() + 60.0
         while not self._clock_running and time.monotonic() < deadline and not self.failed.is_set():
-            time.sleep(0.01)  # device time has not started yet (the loop is warming up)
+            time.sleep(0.01)  # device time has not started yet (no loop yet, or held for a client)
         time.sleep(self.clock.wall_s(device_s))

@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 import pytest
+import serial
 from helpers import northfinder_line, only_line, read_events, sigint_when, start_cli
 
 from northfinder.cli import main
@@ -317,6 +318,7 @@ def test_hardware_path_on_a_moving_vehicle_refuses_with_one_line(tmp_path, capsy
 
     truth_log = tmp_path / "truth.jsonl"
     with VehicleSimProcess(VehicleSim(time_scale=TIME_SCALE, truth_log=str(truth_log))) as endpoints:
+        starter = serial.Serial(endpoints["gnss"])  # the vehicle's device time waits for a client
         deadline = time.monotonic() + 30.0
         while True:  # wait until the vehicle drives (it starts at 10 s, 10 m/s from 18 s)
             rows = truth_log.read_text().splitlines() if truth_log.exists() else []
@@ -324,6 +326,7 @@ def test_hardware_path_on_a_moving_vehicle_refuses_with_one_line(tmp_path, capsy
                 break
             assert time.monotonic() < deadline, "firmware-sim did not reach 20 s of device time"
             time.sleep(0.05)
+        starter.close()
         cfg = tmp_path / "bench.toml"
         cfg.write_text(
             f'[imu]\nport = "{endpoints["imu"]}"\nrate_hz = 250\n[gnss]\nport = "{endpoints["gnss"]}"\n'

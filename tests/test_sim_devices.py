@@ -647,7 +647,7 @@ def test_loop_does_not_spin_on_ports_without_a_client():
     sim = Simulator(SimConfig(time_scale=1.0))
     sim.start()
     try:
-        _time.sleep(1.0)  # past the warm-up
+        _time.sleep(1.0)  # past the start
         ticks0, t0 = sim.ticks, _time.monotonic()
         _time.sleep(0.5)
         rate = (sim.ticks - ticks0) / (_time.monotonic() - t0)

@@ -48,7 +48,7 @@ def _run(*args: str) -> subprocess.Popen[bytes]:
 
 
 def _wait_device_time(sim: Simulator, timeout_s: float = 60.0) -> None:
-    """Until the loop has started device time (it holds it at 0 while scipy loads)."""
+    """Until the loop has started device time (the vehicle holds it at 0 until a client connects)."""
     deadline = time.monotonic() + timeout_s
     while sim.now() == 0.0 and time.monotonic() < deadline:
         time.sleep(0.01)

@@ -57,7 +57,7 @@ def main() -> int:
         n = int(round(args.device_s * args.rate_hz))
         want = MESSAGE_BYTES * (n + 1)
         port = serial.Serial(endpoints["imu"], 921600, timeout=0.5)
-        # The clock starts once the simulator has loaded scipy (after the endpoints line): measure
+        # The clock starts with the simulator's loop (about when the endpoints line comes): measure
         # the stream from its first bytes, and say how long they took to come.
         t_open = time.monotonic()
         raw = bytearray(port.read(1))
@@ -81,7 +81,7 @@ def main() -> int:
     seq = msgs["sequence"].astype(int)
     gaps = int(np.count_nonzero(np.diff(seq) % 128 != 1))
     print(f"endpoints printed after     {t_endpoints:.2f} s (launch to JSON line)")
-    print(f"first IMU bytes after       {t_first:.2f} s (port open to data: the simulator's warm-up)")
+    print(f"first IMU bytes after       {t_first:.2f} s (port open to data)")
     print(f"device time                 {args.device_s:g} s at {args.rate_hz} Hz, "
           f"time scale {args.time_scale:g} (ideal wall {args.device_s / args.time_scale:.2f} s)")
     print(f"messages read               {len(msgs)} of {n}")

@@ -17,8 +17,10 @@ simulated 8×30 s runs with 3 s moves, single-axis LS heading), adding ~1 % in q
 (tests/test_sim_physics.py checks it stays below 0.3× the limit).
 
 Determinism: each error source draws from its own stream (SeedSequence.spawn), normals are
-drawn sample by sample in order, filters carry their state (scipy.signal.lfilter with zi,
-cumulative sums with a carry), so apply(a); apply(b) gives exactly what apply(a ⧺ b) gives.
+drawn sample by sample in order, the Gauss–Markov recursion works on blocks fixed on the sample
+index (`FirstOrderRecursion`), cumulative sums carry their last value, so apply(a); apply(b) gives
+exactly what apply(a ⧺ b) gives. numpy only: scipy.signal's import alone costs ~1 s of CPU, which
+every simulator start would pay.
 """
 
 from __future__ import annotations
@@ -244,6 +246,84 @@ ACCEL_PRESETS: dict[str, AccelErrors] = {
 }
 
 
+GM_BLOCK_E_FOLDS = 40.0
+"""A block of the Gauss–Markov recursion spans at most this many e-folds of φ (φ^len ≥ e^−40), so
+the weights φ^−j inside it stay below e^40 ≈ 2e17: far from overflow, and each weight is one
+correctly rounded pow()."""
+GM_BLOCK_MAX = 4096
+"""…and at most this many samples (the table of φ^j per model)."""
+
+
+class FirstOrderRecursion:
+    """y[n] = φ·y[n−1] + x[n] per column, its state carried from call to call; numpy only.
+
+    Started with `zi` = φ·y[−1] it is, in exact arithmetic, scipy.signal.lfilter([1], [1, −φ], x,
+    axis=0, zi=zi), and `zf` is lfilter's final state φ·y[last]. Computed in blocks of B samples
+    fixed on the sample index (block m holds samples mB … mB + B − 1 since the start), where
+    φ^B ≥ e^−40: with j the position in the block and s the state entering it,
+        y[mB + j] = φ^j · (s + Σ_{i≤j} x[mB + i] / φ^i),   s of the next block = φ·y[mB + B − 1],
+    the sum a sequential cumulative sum that carries its last value to the next call. Each output
+    is one fixed sequence of roundings of the input, whatever the calls' lengths: apply(a);
+    apply(b) gives exactly apply(a ⧺ b), so the simulator's bytes do not depend on its ticks. Its
+    rounding error grows like lfilter's, by ~1 ulp of the signal's scale per sample at worst
+    (tests/test_sim_ar1.py). φ = 0: y = x (and y[0] = x[0] + zi); |φ| ≤ 1.
+    """
+
+    def __init__(self, phi: float, zi, width: int = 3) -> None:
+        self.phi = float(phi)
+        if not abs(self.phi) <= 1.0:
+            raise ValueError(f"phi = {phi}: the recursion needs |φ| ≤ 1")
+        e_folds = -math.log(abs(self.phi)) if self.phi else math.inf  # per sample
+        fits = e_folds * GM_BLOCK_MAX <= GM_BLOCK_E_FOLDS
+        block = GM_BLOCK_MAX if fits else int(GM_BLOCK_E_FOLDS / e_folds)
+        self._powers = self.phi ** np.arange(max(block, 1), dtype=float)  # φ^j, j in the block
+        self._sum = np.array(zi, dtype=float).reshape(width)  # s + Σ so far in the current block
+        self._j = 0  # samples of the current block already done
+
+    @property
+    def zf(self) -> np.ndarray:
+        """The state for the next sample, φ·y[last] (lfilter's zf), shape (1, width)."""
+        if self._j == 0:
+            return self._sum[None, :].copy()
+        return (self.phi * (self._powers[self._j - 1] * self._sum))[None, :]
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """y for the next samples x [n, width] (state carried)."""
+        x = np.asarray(x, dtype=float)
+        n = x.shape[0]
+        if self.phi == 0.0:
+            y = x.copy()
+            if n:
+                y[0] = self._sum + x[0]
+                self._sum = np.zeros_like(self._sum)
+            return y
+        y = np.empty_like(x)
+        block = len(self._powers)
+        done = 0
+        while done < n:
+            m = min(n - done, block - self._j)
+            p = self._powers[self._j:self._j + m, None]
+            terms = x[done:done + m] / p
+            terms[0] += self._sum  # the first step of the block's running sum, as one call would do
+            sums = np.cumsum(terms, axis=0)
+            y[done:done + m] = sums * p
+            done += m
+            self._j += m
+            if self._j == block:  # the next block starts from φ·y at this one's end
+                self._sum, self._j = self.phi * y[done - 1], 0
+            else:
+                self._sum = sums[-1]
+        return y
+
+
+def first_order_filter(x: np.ndarray, phi: float, zi) -> tuple[np.ndarray, np.ndarray]:
+    """(y, zf) of lfilter([1], [1, −φ], x, axis=0, zi=zi) by `FirstOrderRecursion`, blocks counted
+    from this call: calls in a row, each given the last one's zf, continue the stream."""
+    x = np.asarray(x, dtype=float)
+    rec = FirstOrderRecursion(phi, zi, width=x.shape[1])
+    return rec.apply(x), rec.zf
+
+
 def _seed_sequence(rng) -> np.random.SeedSequence:
     """int / SeedSequence / Generator → a SeedSequence to spawn independent streams from."""
     if isinstance(rng, np.random.SeedSequence):
@@ -316,7 +396,7 @@ class _ErrorModel:
         self.rw_sigma = np.asarray(rw_sigma, dtype=float)  # random-walk step per sample
         # stationary start of the Gauss–Markov state; the random walk starts at zero
         gm0 = self.gm_sigma * self.rng["initial"].standard_normal(3)
-        self._gm_zi = (self.phi * gm0)[None, :]
+        self._gm = FirstOrderRecursion(self.phi, self.phi * gm0)
         self._rw = np.zeros(3)
         self.samples = 0
 
@@ -325,9 +405,7 @@ class _ErrorModel:
         gm_in = self.rng["gauss_markov"].standard_normal((n, 3)) * (
             self.gm_sigma * math.sqrt(1.0 - self.phi**2)
         )
-        from scipy.signal import lfilter  # lazy: scipy.signal costs ~0.5-2 s at start-up
-
-        gm, self._gm_zi = lfilter([1.0], [1.0, -self.phi], gm_in, axis=0, zi=self._gm_zi)
+        gm = self._gm.apply(gm_in)
         steps = self.rng["random_walk"].standard_normal((n, 3)) * self.rw_sigma
         rw = np.cumsum(np.concatenate([self._rw[None, :], steps]), axis=0)[1:]
         self._rw = rw[-1].copy() if n else self._rw
