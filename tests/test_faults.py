@@ -8,10 +8,11 @@ a pty). Device time runs TIME_SCALE× the wall clock on a stiff, fast simulated 
 
 Tolerances: the heading error against the truth within 3 of the run's own σ (the noise limit
 test of tests/test_e2e_find.py covers σ itself); counts from the device sample counters, never
-from what a run printed. Fault times are device seconds chosen from the plan: with this stage a
-position takes about 7 s (move ≤ 1 s, settle ≤ 2 s, 3 s dwell) after ~4 s of homing, so
-position k's dwell is near 4 + 7k … 7 + 7k s; faults that must land in a dwell are made long
-enough to overlap one whatever the host's timing jitter.
+from what a run printed. A fault that must land in a dwell is placed in device time from the move
+before it, in the simulator's own thread (`_after_next_move`): the dwell's place after the move is
+decided by the samples (the settle criterion, then the 1 s dwell grid), so it is the same however
+far the host lags behind the device — a time taken from a progress report is not (the host reads a
+backlog: under load the device is already seconds past the dwell the report is about).
 """
 
 from __future__ import annotations
@@ -79,17 +80,17 @@ def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS,
                 during_dwell=None, phase: str = "dwell", link_timeout_s: float = 1.0, **seq_kwargs) -> dict:
     """One find on an in-process firmware_sim with `faults`; the result (or RunFailed raised).
 
-    `during_dwell(sim, progress)` is called on every progress report of `phase` (a dwell's): a
-    fault that must start mid-dwell is injected there by the simulator, at a device time taken from
-    its clock (the settle criterion waits out a bump that starts before the dwell, so a fixed time is
-    not enough).
+    `during_dwell(sim, progress)` is called on every progress report of `phase` (None: every
+    report): a fault that must start mid-dwell is set on the running simulator from the report of
+    the move before that dwell (`_after_next_move`; the settle criterion waits out a bump that starts
+    before the dwell, so a fixed time from the start is not enough).
     """
     from firmware_sim.simulator import Simulator
     from northfinder.runs.find import measure
 
     sim = Simulator(_sim_config(faults))
     if during_dwell is not None:
-        seq_kwargs["on_progress"] = lambda p: during_dwell(sim, p) if p.phase == phase else None
+        seq_kwargs["on_progress"] = lambda p: during_dwell(sim, p) if phase in (None, p.phase) else None
     with sim as endpoints:
         cfg = bench_config(endpoints, TRUTH["latitude_deg"])
         cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
@@ -117,13 +118,46 @@ def _check_counts(run_dir: Path) -> None:
         assert acc["samples"] + acc["lost"] == acc["last_counter"] - acc["first_counter"] + 1
 
 
+IN_DWELL_AFTER_MOVE_S = 2.9
+"""Device seconds from the end of a move to a time inside the dwell that follows it, whatever the
+host's pace: the dwell starts on the first whole device second (the sequencer's 1 s dwell grid of
+IMU sample indices) after the settle criterion, which this stage meets 1.44–1.52 s after a move's
+end (run A's positions: the dwells started 1.52–2.44 s after it); so the 3 s dwell covers the move's
+end + 2.52 … + 4.44 s, and + 2.9 s stays inside it for a settle anywhere in 0.4–1.9 s."""
+
+
+def _after_next_move(sim, then) -> None:
+    """Call `then(move_end_s)` in the simulator's thread once the stage's next move is planned,
+    with the device time it ends: a fault placed from that is placed in device time, before the
+    device gets there, however late the host reads its data. Call it from a "move" progress report
+    (sent before the move command)."""
+    table = sim.world.table
+    waiting = table.__dict__.setdefault("_then_after_move", [])
+    waiting.append(then)
+    if "command_move" in table.__dict__:
+        return
+    plan = table.command_move
+
+    def planned(t_s, target_rad, **kwargs):
+        end_s = plan(t_s, target_rad, **kwargs)
+        while waiting:
+            waiting.pop(0)(end_s)
+        return end_s
+
+    table.command_move = planned
+
+
 # -- run A: stream faults at low rates, accelerometer faults, a stall, a bump ------------------------
 
 def _bump_in_position_5(sim, p) -> None:
-    """A knock 0.2 s (device) after position 5's dwell has 1 s: 0.5 s of 2 Hz rocking of 0.01°
-    (about 450 °/h peak rate; the nav gyro's 0.1 s block means scatter by ~0.4 °/h)."""
-    if p.position == 5 and p.dwell_done_s >= 1.0 and not sim.world.disturbances:
-        sim.world.add_disturbance(sim.clock.now() + 0.2, 0.5, 0.01)
+    """A knock inside position 5's first dwell (IN_DWELL_AFTER_MOVE_S after its move ends): 0.5 s
+    of 2 Hz rocking of 0.01° (about 450 °/h peak rate; the nav gyro's 0.1 s block means scatter by
+    ~0.4 °/h)."""
+    if p.phase == "move" and p.position == 5 and not sim.world.disturbances:  # attempt 1 (then it has one)
+        def knock(end_s: float) -> None:
+            sim.world.add_disturbance(end_s + IN_DWELL_AFTER_MOVE_S, 0.5, 0.01)
+
+        _after_next_move(sim, knock)
 
 
 
@@ -132,7 +166,7 @@ def _emcy_in_position_1_and_bump_in_position_5(sim, p) -> None:
     operational (CiA 301 nodes send no EMCY while stopped, i.e. during the moves): a fixed device
     time would land wherever the host's pace put the moves — then the bump of position 5."""
     node = sim.accelerometer
-    if p.position == 1 and p.dwell_done_s >= 1.0 and not node.faults.emcy:
+    if p.phase == "dwell" and p.position == 1 and p.dwell_done_s >= 1.0 and not node.faults.emcy:
         node.faults.emcy.append((sim.clock.now() + 0.2, 0x5000))
     _bump_in_position_5(sim, p)
 
@@ -149,7 +183,8 @@ FAULTS_A = [
 @pytest.fixture(scope="module")
 def run_a(tmp_path_factory) -> tuple[Path, dict]:
     run_dir = tmp_path_factory.mktemp("faults") / "run_a"
-    return run_dir, _in_process(run_dir, FAULTS_A, during_dwell=_emcy_in_position_1_and_bump_in_position_5)
+    return run_dir, _in_process(run_dir, FAULTS_A, during_dwell=_emcy_in_position_1_and_bump_in_position_5,
+                                phase=None)
 
 
 def test_corrupt_imu_frames_are_dropped_counted_and_the_heading_stays_within_sigma(run_a):
@@ -246,20 +281,28 @@ def test_disturbance_statistic_on_white_noise_and_on_a_bump():
 # -- run B: the IMU silent mid-dwell, then its port gone and back -----------------------------------
 
 def _silence_in_position_3(sim, p) -> None:
-    """The IMU silent for 2 s (device) from 0.2 s after position 3's dwell has 1 s (imu-silence,
-    set on the running simulator)."""
-    if p.position == 3 and p.dwell_done_s >= 1.0 and sim.imu.silence is None:
-        sim.imu.silence = (sim.clock.now() + 0.2, 2.0)
+    """The IMU silent for 2 s (device) from inside position 3's first dwell (imu-silence, set on
+    the running simulator IN_DWELL_AFTER_MOVE_S after its move ends)."""
+    if p.phase == "move" and p.position == 3 and sim.imu.silence is None:  # attempt 1 (then it has one)
+
+        def silence(end_s: float) -> None:
+            sim.imu.silence = (end_s + IN_DWELL_AFTER_MOVE_S, 2.0)
+
+        _after_next_move(sim, silence)
 
 
 def _silence_in_position_3_and_unplug_in_position_6(sim, p) -> None:
-    """The silence above, then the IMU's port gone for 1 s (device) from 0.2 s after position 6's
-    dwell has 1 s — both set on the running simulator at a phase of the run, not at a fixed device
-    time that the host's pace could move into another position's dwell."""
+    """The silence above, then the IMU's port gone for 1 s (device) from inside position 6's first
+    dwell — both placed from the move before the dwell, not at a fixed device time that the host's
+    pace could move into another position's dwell."""
     _silence_in_position_3(sim, p)
     pending = sim.imu.disconnect  # None once it has happened (one disconnect per run)
-    if p.position == 6 and p.dwell_done_s >= 1.0 and pending is not None and pending[0] > 1e5:
-        sim.imu.disconnect = (sim.clock.now() + 0.2, 1.0)
+    if p.phase == "move" and p.position == 6 and pending is not None and pending[0] > 1e5:
+
+        def unplug(end_s: float) -> None:
+            sim.imu.disconnect = (end_s + IN_DWELL_AFTER_MOVE_S, 1.0)
+
+        _after_next_move(sim, unplug)
 
 
 @pytest.fixture(scope="module")
@@ -271,7 +314,7 @@ def run_b(tmp_path_factory) -> tuple[Path, dict]:
     # decoder marks its length unknown (KvhDecoder._index) and the dwell is measured again.
     # imu-disconnect far in the future sets up the port's symlink; the hook moves it into position 6
     return run_dir, _in_process(run_dir, ["imu-disconnect=1000000:1"], positions=7,
-                                during_dwell=_silence_in_position_3_and_unplug_in_position_6)
+                                during_dwell=_silence_in_position_3_and_unplug_in_position_6, phase=None)
 
 
 def test_imu_silent_mid_dwell_is_detected_and_the_dwell_measured_again(run_b):
@@ -297,16 +340,17 @@ def test_imu_port_that_disappears_and_comes_back_is_reconnected_and_the_position
 
 
 def test_imu_silent_for_good_stops_the_run_after_n_attempts_with_its_data_saved(tmp_path):
-    # silent for good from position 4's first dwell report on (set on the running simulator: a fixed
-    # device time would land wherever the host's pace put the dwells): every attempt times out (1 s
-    # host), the run stops with positions 1-3
+    # silent for good from position 4's move report on (set on the running simulator once position 3
+    # is measured: a fixed device time would land wherever the host's pace put the dwells, a time
+    # from a dwell report after that dwell's samples when the host lags): every attempt times out
+    # (1 s host), the run stops with positions 1-3
     def silent_for_good_from_position_4(sim, p) -> None:
-        if p.position == 4 and sim.imu.silence is None:
+        if p.phase == "move" and p.position == 4 and sim.imu.silence is None:
             sim.imu.silence = (sim.clock.now(), 1e5)
 
     run_dir = tmp_path / "run"
     with pytest.raises(RunFailed) as info:
-        _in_process(run_dir, [], positions=5, during_dwell=silent_for_good_from_position_4)
+        _in_process(run_dir, [], positions=5, during_dwell=silent_for_good_from_position_4, phase="move")
     msg = str(info.value)
     assert "failed 3 times" in msg and "imu" in msg and str(run_dir) in msg and "--resume" in msg
     assert len(_positions(run_dir)) == 3
@@ -519,37 +563,27 @@ def test_sigint_while_homing_stops_the_stage_and_saves(tmp_path):
 
 
 def test_stage_that_stalls_again_on_the_retry_is_stopped_and_the_run_ends_with_its_data_saved(tmp_path):
-    import threading
-
     from firmware_sim.simulator import Simulator
     from northfinder.runs.find import measure
 
     run_dir = tmp_path / "run"
     sim = Simulator(_sim_config(["stage-stall=5"]))
-    done = threading.Event()
 
-    def stall_the_retry_too() -> None:
-        # once move 5 has been commanded (its stall is decided then), move 6 — the retry — stalls too
-        while not done.is_set():
-            if sim.turntable is not None and sim.turntable.moves >= 5:
-                sim.turntable.stall_move = 6
-                return
-            time.sleep(0.001)
+    def stall_the_retry_too(p) -> None:
+        # move 5 stalls (its stall is decided as it is planned); the next move, the retry, stalls too:
+        # set in the simulator's thread as move 5 is planned, before any retry can come
+        if p.phase == "move" and sim.turntable.moves < 5 and sim.turntable.stall_move == 5:
+            _after_next_move(sim, lambda end_s: setattr(sim.turntable, "stall_move", 6)
+                             if sim.turntable.moves == 5 else None)
 
-    watcher = threading.Thread(target=stall_the_retry_too, daemon=True)
     with sim as endpoints:
-        watcher.start()
         cfg = bench_config(endpoints, TRUTH["latitude_deg"])
         cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
         cfg.run.positions = 6
         cfg.run.dwell_s = 1.0
-        try:
-            with pytest.raises(RunFailed) as info:
-                measure(cfg.validate(), RunDir(run_dir), settings=SimSettings(**TRUTH, time_scale=TIME_SCALE),
-                        report=False, seq_kwargs={"read_timeout_s": 1.0})
-        finally:
-            done.set()
-            watcher.join()
+        with pytest.raises(RunFailed) as info:
+            measure(cfg.validate(), RunDir(run_dir), settings=SimSettings(**TRUTH, time_scale=TIME_SCALE),
+                    report=False, seq_kwargs={"read_timeout_s": 1.0, "on_progress": stall_the_retry_too})
     msg = str(info.value)
     assert "failed twice" in msg and "following error" in msg and "stage stopped (DISABLE" in msg
     assert str(run_dir) in msg and "--resume" in msg
