@@ -221,11 +221,12 @@ def test_sweep_find_turns_whole_revolutions_both_ways_and_fits_every_sample(tmp_
 
 @pytest.mark.socketcan
 def test_find_with_the_accelerometer_on_socketcan_vcan0(tmp_path):
-    """On a vcan of its own (tests/socketcan_bus.py; runs in tools/vcan_guest.py's guest)."""
+    """On a vcan of its own (tests/socketcan_bus.py; runs in tools/vcan_guest.py's guest): 4 positions
+    (the accuracy of 8 is the virtual-bus run's; this one is about the bus, in the guest's slow Python)."""
     from socketcan_bus import own_vcan
 
     with own_vcan("vcan-e2e") as channel:
-        _in_process_run(tmp_path, "socketcan", channel)
+        _in_process_run(tmp_path, "socketcan", channel, positions=4)
 
 
 # -- command line: Ctrl-C, user mistakes ------------------------------------------------------------
