@@ -59,7 +59,7 @@ def _positions(run_dir: Path) -> list[dict]:
     return [e for e in _events(run_dir) if e["event"] == "position"]
 
 
-def _sim_config(faults: list[str], seed: int = 3) -> object:
+def _sim_config(faults: list[str], seed: int = 3, **overrides) -> object:
     from firmware_sim.config import SimConfig
     from firmware_sim.faults import parse_faults
 
@@ -73,11 +73,13 @@ def _sim_config(faults: list[str], seed: int = 3) -> object:
         can_interface="virtual",
         can_channel=f"faults-{uuid.uuid4().hex[:8]}",
         faults=parse_faults(faults),
+        **overrides,
     )
 
 
 def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS, dwell_s: float = DWELL_S,
-                during_dwell=None, phase: str = "dwell", link_timeout_s: float = 1.0, **seq_kwargs) -> dict:
+                during_dwell=None, phase: str | None = "dwell", link_timeout_s: float = 1.0,
+                sim_overrides: dict | None = None, **seq_kwargs) -> dict:
     """One find on an in-process firmware_sim with `faults`; the result (or RunFailed raised).
 
     `during_dwell(sim, progress)` is called on every progress report of `phase` (None: every
@@ -88,7 +90,7 @@ def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS,
     from firmware_sim.simulator import Simulator
     from northfinder.runs.find import measure
 
-    sim = Simulator(_sim_config(faults))
+    sim = Simulator(_sim_config(faults, **(sim_overrides or {})))
     if during_dwell is not None:
         seq_kwargs["on_progress"] = lambda p: during_dwell(sim, p) if phase in (None, p.phase) else None
     with sim as endpoints:
@@ -545,8 +547,9 @@ def test_sigint_while_homing_stops_the_stage_and_saves(tmp_path):
             timer[0].start()
 
     try:
-        with pytest.raises(RunAborted) as info:
-            _in_process(run_dir, [], on_progress=hook)
+        with pytest.raises(RunAborted) as info:  # homing at 10 °/s: ~14 device s, 1.4 s of wall time at
+            # 10× for the SIGINT to land in (at the stage's 90 °/s 0.16 s: narrow on a loaded host)
+            _in_process(run_dir, [], on_progress=hook, sim_overrides={"stage_home_speed_dps": 10.0})
     finally:
         for t in timer:
             t.join(timeout=25.0)

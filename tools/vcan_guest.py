@@ -93,8 +93,11 @@ def run_in_guest(command: list[str], out: Path, timeout_s: float, mem: str, cwd:
         try:
             guest.wait(timeout=timeout_s + BOOT_MARGIN_S)
         except subprocess.TimeoutExpired:
-            os.killpg(guest.pid, signal.SIGKILL)  # judged below: no rc file
-            guest.wait()
+            pass  # judged below: no rc file
+        finally:  # a timeout, or this script ended (SIGTERM from .ci/run, Ctrl-C): the guest goes too
+            if guest.poll() is None:
+                os.killpg(guest.pid, signal.SIGKILL)
+                guest.wait()
     wall_s = time.monotonic() - t0
     rc_file, times = out / "rc", out / "times"
     rc = int(rc_file.read_text()) if rc_file.exists() else None
@@ -117,11 +120,11 @@ def socketcan_test_files(tests: Path = REPO / "tests") -> list[Path]:
 def pytest_command(junit: Path) -> list[str]:
     """pytest in the guest: the socketcan tests of those files, serially (the guest has one CPU), none
     of the suite's addopts (xdist's four workers), no plugin it does not need (xdist, the cache,
-    hypothesis's: ~2 s of start-up in the guest); the ini file's timeout still holds."""
+    hypothesis's, benchmark: ~2 s of start-up in the guest); the ini file's timeout still holds."""
     files = [str(f.relative_to(REPO)) for f in socketcan_test_files()]
     return [sys.executable, "-m", "pytest", "-o", "addopts=", "-p", "no:xdist", "-p", "no:cacheprovider",
-            "-p", "no:hypothesispytest", "-m", "socketcan", "-rA", "--durations=0", f"--junitxml={junit}",
-            *files]
+            "-p", "no:hypothesispytest", "-p", "no:benchmark", "-m", "socketcan", "-rA", "--durations=0",
+            f"--junitxml={junit}", *files]
 
 
 def junit_counts(path: Path) -> dict[str, int]:
@@ -139,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("command", nargs="*",
                    help="run this (after --, in the current directory) instead of the socketcan tests")
     args = p.parse_args(argv)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # through run_in_guest's cleanup
     out = Path(args.out or tempfile.mkdtemp(prefix="vcan-guest-")).resolve()
     junit = out / "junit.xml"
     tests = not args.command
