@@ -79,6 +79,8 @@ def run_in_guest(command: list[str], out: Path, timeout_s: float, mem: str, cwd:
         raise SystemExit("vcan_guest: no User-Mode Linux kernel here — apt-get install user-mode-linux kmod "
                          "can-utils")
     out.mkdir(parents=True, exist_ok=True)
+    for stale in ("rc", "times", "booted", "command.log", "junit.xml"):  # a reused --out: judge this run only
+        (out / stale).unlink(missing_ok=True)
     init = out / "init.sh"
     init.write_text(init_script(out, command, timeout_s, modules, cwd))
     init.chmod(0o755)
