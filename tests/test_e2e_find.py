@@ -173,7 +173,7 @@ def test_find_against_firmware_sim_process_over_ptys_and_slcan(tmp_path, fast_st
 
 
 def _in_process_run(tmp_path: Path, interface: str, channel: str, plan: str = "positions+motion",
-                    positions: int = POSITIONS) -> dict:
+                    positions: int = POSITIONS, report: bool = True) -> dict:
     from firmware_sim.config import SimConfig
     from firmware_sim.simulator import Simulator
     from northfinder.runs.find import measure
@@ -194,10 +194,11 @@ def _in_process_run(tmp_path: Path, interface: str, channel: str, plan: str = "p
     with Simulator(sim_cfg) as endpoints:
         assert endpoints["can"]["interface"] == interface
         cfg = _run_cfg(bench_config(endpoints, truth["latitude_deg"]), plan, positions)
-        result = measure(cfg, RunDir(run_dir), settings=settings, report=True,)
+        result = measure(cfg, RunDir(run_dir), settings=settings, report=report)
     _check_accuracy(result, {**truth, **settings.truth(), "grade": truth["grade"]}, plan, positions)
     _check_replay(run_dir, positions)
-    assert (run_dir / "report.png").stat().st_size > 10_000
+    if report:
+        assert (run_dir / "report.png").stat().st_size > 10_000
     return result
 
 
@@ -221,11 +222,13 @@ def test_sweep_find_turns_whole_revolutions_both_ways_and_fits_every_sample(tmp_
 
 @pytest.mark.socketcan
 def test_find_with_the_accelerometer_on_socketcan_vcan0(tmp_path):
-    """On a vcan of its own (tests/socketcan_bus.py; runs in tools/vcan_guest.py's guest)."""
+    """On a vcan of its own (tests/socketcan_bus.py; runs in tools/vcan_guest.py's guest): 4 positions,
+    no report (the accuracy of 8 and the report are the virtual-bus run's; this one is about the bus,
+    in the guest's slow Python)."""
     from socketcan_bus import own_vcan
 
     with own_vcan("vcan-e2e") as channel:
-        _in_process_run(tmp_path, "socketcan", channel)
+        _in_process_run(tmp_path, "socketcan", channel, positions=4, report=False)
 
 
 # -- command line: Ctrl-C, user mistakes ------------------------------------------------------------

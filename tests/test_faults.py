@@ -8,10 +8,11 @@ a pty). Device time runs TIME_SCALE× the wall clock on a stiff, fast simulated 
 
 Tolerances: the heading error against the truth within 3 of the run's own σ (the noise limit
 test of tests/test_e2e_find.py covers σ itself); counts from the device sample counters, never
-from what a run printed. Fault times are device seconds chosen from the plan: with this stage a
-position takes about 7 s (move ≤ 1 s, settle ≤ 2 s, 3 s dwell) after ~4 s of homing, so
-position k's dwell is near 4 + 7k … 7 + 7k s; faults that must land in a dwell are made long
-enough to overlap one whatever the host's timing jitter.
+from what a run printed. A fault that must land in a dwell is placed in device time from the move
+before it, in the simulator's own thread (`_after_next_move`): the dwell's place after the move is
+decided by the samples (the settle criterion, then the 1 s dwell grid), so it is the same however
+far the host lags behind the device — a time taken from a progress report is not (the host reads a
+backlog: under load the device is already seconds past the dwell the report is about).
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ REPO = Path(__file__).resolve().parents[1]
 TIME_SCALE = 10.0
 POSITIONS = 8
 DWELL_S = 3.0
+FAULT_DWELL_S = 4.0  # runs A and B: long enough that a fault placed from the move lands inside (below)
 ACCEL_RATE_HZ = 50.0
 TRUTH = {"heading_deg": 37.0, "pitch_deg": 1.5, "roll_deg": -0.8, "latitude_deg": 40.0}
 FAST_STAGE = {"stage_speed_dps": 90.0, "stage_accel_dps2": 360.0, "stage_ringing_decay_s": 0.1}
@@ -58,7 +60,7 @@ def _positions(run_dir: Path) -> list[dict]:
     return [e for e in _events(run_dir) if e["event"] == "position"]
 
 
-def _sim_config(faults: list[str], seed: int = 3) -> object:
+def _sim_config(faults: list[str], seed: int = 3, **overrides) -> object:
     from firmware_sim.config import SimConfig
     from firmware_sim.faults import parse_faults
 
@@ -72,24 +74,26 @@ def _sim_config(faults: list[str], seed: int = 3) -> object:
         can_interface="virtual",
         can_channel=f"faults-{uuid.uuid4().hex[:8]}",
         faults=parse_faults(faults),
+        **overrides,
     )
 
 
 def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS, dwell_s: float = DWELL_S,
-                during_dwell=None, phase: str = "dwell", link_timeout_s: float = 1.0, **seq_kwargs) -> dict:
+                during_dwell=None, phase: str | None = "dwell", link_timeout_s: float = 1.0,
+                sim_overrides: dict | None = None, **seq_kwargs) -> dict:
     """One find on an in-process firmware_sim with `faults`; the result (or RunFailed raised).
 
-    `during_dwell(sim, progress)` is called on every progress report of `phase` (a dwell's): a
-    fault that must start mid-dwell is injected there by the simulator, at a device time taken from
-    its clock (the settle criterion waits out a bump that starts before the dwell, so a fixed time is
-    not enough).
+    `during_dwell(sim, progress)` is called on every progress report of `phase` (None: every
+    report): a fault that must start mid-dwell is set on the running simulator from the report of
+    the move before that dwell (`_after_next_move`; the settle criterion waits out a bump that starts
+    before the dwell, so a fixed time from the start is not enough).
     """
     from firmware_sim.simulator import Simulator
     from northfinder.runs.find import measure
 
-    sim = Simulator(_sim_config(faults))
+    sim = Simulator(_sim_config(faults, **(sim_overrides or {})))
     if during_dwell is not None:
-        seq_kwargs["on_progress"] = lambda p: during_dwell(sim, p) if p.phase == phase else None
+        seq_kwargs["on_progress"] = lambda p: during_dwell(sim, p) if phase in (None, p.phase) else None
     with sim as endpoints:
         cfg = bench_config(endpoints, TRUTH["latitude_deg"])
         cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
@@ -108,22 +112,57 @@ def _check_replay_identical(run_dir: Path) -> None:
     assert json.loads(json.dumps(jsonable(again.result))) == live  # faults summary included
 
 
-def _check_counts(run_dir: Path) -> None:
+def _check_counts(run_dir: Path, dwell_s: float = FAULT_DWELL_S) -> None:
     """Every kept dwell: received + lost = the device sample counter's span (IMU and CAN)."""
     for e in _positions(run_dir):
         imu, acc = e["imu"], e["accel"]
         assert imu["samples"] + imu["lost"] == imu["last_index"] - imu["first_index"] + 1
-        assert imu["samples"] == int(DWELL_S * 1000)
+        assert imu["samples"] == int(dwell_s * 1000)
         assert acc["samples"] + acc["lost"] == acc["last_counter"] - acc["first_counter"] + 1
+
+
+IN_DWELL_AFTER_MOVE_S = 3.6
+"""Device seconds from the end of a move to a time inside the FAULT_DWELL_S dwell that follows it:
+the dwell starts on the first whole device second (the sequencer's 1 s grid of IMU sample indices)
+after the settle criterion. Measured on this stage (63 positions, quiet and beside three CPU hogs)
+the dwells started 0.90–2.52 s after the move's end, once (load ~10) later than 2.9 s; a 4 s dwell
+then covers the end + ~3.0 … 4.9 s, and a fault from + 3.6 s (a 0.5 s knock, a silence's start)
+lands inside it whatever the host's pace. (A time from a dwell's progress report does not: the
+host reads a backlog, and under load the device is already past that dwell.)"""
+
+
+def _after_next_move(sim, then) -> None:
+    """Call `then(move_end_s)` in the simulator's thread once the stage's next move is planned,
+    with the device time it ends: a fault placed from that is placed in device time, before the
+    device gets there, however late the host reads its data. Call it from a "move" progress report
+    (sent before the move command)."""
+    table = sim.world.table
+    waiting = table.__dict__.setdefault("_then_after_move", [])
+    waiting.append(then)
+    if "command_move" in table.__dict__:
+        return
+    plan = table.command_move
+
+    def planned(t_s, target_rad, **kwargs):
+        end_s = plan(t_s, target_rad, **kwargs)
+        while waiting:
+            waiting.pop(0)(end_s)
+        return end_s
+
+    table.command_move = planned
 
 
 # -- run A: stream faults at low rates, accelerometer faults, a stall, a bump ------------------------
 
 def _bump_in_position_5(sim, p) -> None:
-    """A knock 0.2 s (device) after position 5's dwell has 1 s: 0.5 s of 2 Hz rocking of 0.01°
-    (about 450 °/h peak rate; the nav gyro's 0.1 s block means scatter by ~0.4 °/h)."""
-    if p.position == 5 and p.dwell_done_s >= 1.0 and not sim.world.disturbances:
-        sim.world.add_disturbance(sim.clock.now() + 0.2, 0.5, 0.01)
+    """A knock inside position 5's first dwell (IN_DWELL_AFTER_MOVE_S after its move ends): 0.5 s
+    of 2 Hz rocking of 0.01° (about 450 °/h peak rate; the nav gyro's 0.1 s block means scatter by
+    ~0.4 °/h)."""
+    if p.phase == "move" and p.position == 5 and not sim.world.disturbances:  # attempt 1 (then it has one)
+        def knock(end_s: float) -> None:
+            sim.world.add_disturbance(end_s + IN_DWELL_AFTER_MOVE_S, 0.5, 0.01)
+
+        _after_next_move(sim, knock)
 
 
 
@@ -132,7 +171,7 @@ def _emcy_in_position_1_and_bump_in_position_5(sim, p) -> None:
     operational (CiA 301 nodes send no EMCY while stopped, i.e. during the moves): a fixed device
     time would land wherever the host's pace put the moves — then the bump of position 5."""
     node = sim.accelerometer
-    if p.position == 1 and p.dwell_done_s >= 1.0 and not node.faults.emcy:
+    if p.phase == "dwell" and p.position == 1 and p.dwell_done_s >= 1.0 and not node.faults.emcy:
         node.faults.emcy.append((sim.clock.now() + 0.2, 0x5000))
     _bump_in_position_5(sim, p)
 
@@ -149,7 +188,8 @@ FAULTS_A = [
 @pytest.fixture(scope="module")
 def run_a(tmp_path_factory) -> tuple[Path, dict]:
     run_dir = tmp_path_factory.mktemp("faults") / "run_a"
-    return run_dir, _in_process(run_dir, FAULTS_A, during_dwell=_emcy_in_position_1_and_bump_in_position_5)
+    return run_dir, _in_process(run_dir, FAULTS_A, during_dwell=_emcy_in_position_1_and_bump_in_position_5,
+                                phase=None, dwell_s=FAULT_DWELL_S)
 
 
 def test_corrupt_imu_frames_are_dropped_counted_and_the_heading_stays_within_sigma(run_a):
@@ -159,7 +199,7 @@ def test_corrupt_imu_frames_are_dropped_counted_and_the_heading_stays_within_sig
     assert imu["lost_in_dwells"] > 0
     _check_counts(run_dir)
     assert sum(p["lost_samples"] for p in result["positions"]) == imu["lost_in_dwells"]
-    # 1 % corrupt + 0.2 % cut frames: about 1.2 % of each dwell lost (binomial, 3000 frames: ±0.2 %)
+    # 1 % corrupt + 0.2 % cut frames: about 1.2 % of each dwell lost (binomial, 4000 frames: ±0.2 %)
     for p in result["positions"]:
         assert 0.004 < p["lost_samples"] / (p["samples"] + p["lost_samples"]) < 0.03
     assert result["complete"] and result["positions_measured"] == POSITIONS
@@ -246,20 +286,28 @@ def test_disturbance_statistic_on_white_noise_and_on_a_bump():
 # -- run B: the IMU silent mid-dwell, then its port gone and back -----------------------------------
 
 def _silence_in_position_3(sim, p) -> None:
-    """The IMU silent for 2 s (device) from 0.2 s after position 3's dwell has 1 s (imu-silence,
-    set on the running simulator)."""
-    if p.position == 3 and p.dwell_done_s >= 1.0 and sim.imu.silence is None:
-        sim.imu.silence = (sim.clock.now() + 0.2, 2.0)
+    """The IMU silent for 2 s (device) from inside position 3's first dwell (imu-silence, set on
+    the running simulator IN_DWELL_AFTER_MOVE_S after its move ends)."""
+    if p.phase == "move" and p.position == 3 and sim.imu.silence is None:  # attempt 1 (then it has one)
+
+        def silence(end_s: float) -> None:
+            sim.imu.silence = (end_s + IN_DWELL_AFTER_MOVE_S, 2.0)
+
+        _after_next_move(sim, silence)
 
 
 def _silence_in_position_3_and_unplug_in_position_6(sim, p) -> None:
-    """The silence above, then the IMU's port gone for 1 s (device) from 0.2 s after position 6's
-    dwell has 1 s — both set on the running simulator at a phase of the run, not at a fixed device
-    time that the host's pace could move into another position's dwell."""
+    """The silence above, then the IMU's port gone for 1 s (device) from inside position 6's first
+    dwell — both placed from the move before the dwell, not at a fixed device time that the host's
+    pace could move into another position's dwell."""
     _silence_in_position_3(sim, p)
     pending = sim.imu.disconnect  # None once it has happened (one disconnect per run)
-    if p.position == 6 and p.dwell_done_s >= 1.0 and pending is not None and pending[0] > 1e5:
-        sim.imu.disconnect = (sim.clock.now() + 0.2, 1.0)
+    if p.phase == "move" and p.position == 6 and pending is not None and pending[0] > 1e5:
+
+        def unplug(end_s: float) -> None:
+            sim.imu.disconnect = (end_s + IN_DWELL_AFTER_MOVE_S, 1.0)
+
+        _after_next_move(sim, unplug)
 
 
 @pytest.fixture(scope="module")
@@ -271,7 +319,8 @@ def run_b(tmp_path_factory) -> tuple[Path, dict]:
     # decoder marks its length unknown (KvhDecoder._index) and the dwell is measured again.
     # imu-disconnect far in the future sets up the port's symlink; the hook moves it into position 6
     return run_dir, _in_process(run_dir, ["imu-disconnect=1000000:1"], positions=7,
-                                during_dwell=_silence_in_position_3_and_unplug_in_position_6)
+                                during_dwell=_silence_in_position_3_and_unplug_in_position_6, phase=None,
+                                dwell_s=FAULT_DWELL_S)
 
 
 def test_imu_silent_mid_dwell_is_detected_and_the_dwell_measured_again(run_b):
@@ -297,16 +346,17 @@ def test_imu_port_that_disappears_and_comes_back_is_reconnected_and_the_position
 
 
 def test_imu_silent_for_good_stops_the_run_after_n_attempts_with_its_data_saved(tmp_path):
-    # silent for good from position 4's first dwell report on (set on the running simulator: a fixed
-    # device time would land wherever the host's pace put the dwells): every attempt times out (1 s
-    # host), the run stops with positions 1-3
+    # silent for good from position 4's move report on (set on the running simulator once position 3
+    # is measured: a fixed device time would land wherever the host's pace put the dwells, a time
+    # from a dwell report after that dwell's samples when the host lags): every attempt times out
+    # (1 s host), the run stops with positions 1-3
     def silent_for_good_from_position_4(sim, p) -> None:
-        if p.position == 4 and sim.imu.silence is None:
+        if p.phase == "move" and p.position == 4 and sim.imu.silence is None:
             sim.imu.silence = (sim.clock.now(), 1e5)
 
     run_dir = tmp_path / "run"
     with pytest.raises(RunFailed) as info:
-        _in_process(run_dir, [], positions=5, during_dwell=silent_for_good_from_position_4)
+        _in_process(run_dir, [], positions=5, during_dwell=silent_for_good_from_position_4, phase="move")
     msg = str(info.value)
     assert "failed 3 times" in msg and "imu" in msg and str(run_dir) in msg and "--resume" in msg
     assert len(_positions(run_dir)) == 3
@@ -501,8 +551,9 @@ def test_sigint_while_homing_stops_the_stage_and_saves(tmp_path):
             timer[0].start()
 
     try:
-        with pytest.raises(RunAborted) as info:
-            _in_process(run_dir, [], on_progress=hook)
+        with pytest.raises(RunAborted) as info:  # homing at 10 °/s: ~14 device s, 1.4 s of wall time at
+            # 10× for the SIGINT to land in (at the stage's 90 °/s 0.16 s: narrow on a loaded host)
+            _in_process(run_dir, [], on_progress=hook, sim_overrides={"stage_home_speed_dps": 10.0})
     finally:
         for t in timer:
             t.join(timeout=25.0)
@@ -519,37 +570,27 @@ def test_sigint_while_homing_stops_the_stage_and_saves(tmp_path):
 
 
 def test_stage_that_stalls_again_on_the_retry_is_stopped_and_the_run_ends_with_its_data_saved(tmp_path):
-    import threading
-
     from firmware_sim.simulator import Simulator
     from northfinder.runs.find import measure
 
     run_dir = tmp_path / "run"
     sim = Simulator(_sim_config(["stage-stall=5"]))
-    done = threading.Event()
 
-    def stall_the_retry_too() -> None:
-        # once move 5 has been commanded (its stall is decided then), move 6 — the retry — stalls too
-        while not done.is_set():
-            if sim.turntable is not None and sim.turntable.moves >= 5:
-                sim.turntable.stall_move = 6
-                return
-            time.sleep(0.001)
+    def stall_the_retry_too(p) -> None:
+        # move 5 stalls (its stall is decided as it is planned); the next move, the retry, stalls too:
+        # set in the simulator's thread as move 5 is planned, before any retry can come
+        if p.phase == "move" and sim.turntable.moves < 5 and sim.turntable.stall_move == 5:
+            _after_next_move(sim, lambda end_s: setattr(sim.turntable, "stall_move", 6)
+                             if sim.turntable.moves == 5 else None)
 
-    watcher = threading.Thread(target=stall_the_retry_too, daemon=True)
     with sim as endpoints:
-        watcher.start()
         cfg = bench_config(endpoints, TRUTH["latitude_deg"])
         cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
         cfg.run.positions = 6
         cfg.run.dwell_s = 1.0
-        try:
-            with pytest.raises(RunFailed) as info:
-                measure(cfg.validate(), RunDir(run_dir), settings=SimSettings(**TRUTH, time_scale=TIME_SCALE),
-                        report=False, seq_kwargs={"read_timeout_s": 1.0})
-        finally:
-            done.set()
-            watcher.join()
+        with pytest.raises(RunFailed) as info:
+            measure(cfg.validate(), RunDir(run_dir), settings=SimSettings(**TRUTH, time_scale=TIME_SCALE),
+                    report=False, seq_kwargs={"read_timeout_s": 1.0, "on_progress": stall_the_retry_too})
     msg = str(info.value)
     assert "failed twice" in msg and "following error" in msg and "stage stopped (DISABLE" in msg
     assert str(run_dir) in msg and "--resume" in msg

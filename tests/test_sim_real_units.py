@@ -315,7 +315,11 @@ def test_slow_stage_move_takes_its_planned_device_time(tmp_path):
                 break
             time.sleep(0.01)
         stage.close()
-        sim.run_for(4.0)  # the truth rows through the ringing after the stop
+        # the truth rows through the ringing after the stop: until the loop has ticked 4 s (device)
+        # past READY — its ticks, not a wall-clock sleep that a loaded host's loop may not fill
+        until_s, deadline = states[-1][2] + 4.0, time.monotonic() + 60.0
+        while sim.last_t < until_s and time.monotonic() < deadline:
+            time.sleep(0.01)
     finally:
         sim.stop()
     moves = [e for e in _events(truth) if e["event"] == "move"]
