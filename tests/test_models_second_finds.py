@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import run_cli
+from scipy import stats
 
 from northfinder.estimators.limits import noise_limit_heading_std_deg
 from northfinder.estimators.plan import GRADES
@@ -29,6 +30,8 @@ POSITIONS, DWELL_S, TIME_SCALE = 8, 2.0, 10.0
 FAST_STAGE_TOML = "stage_speed_dps = 90.0\nstage_accel_dps2 = 360.0\nstage_ringing_decay_s = 0.1\n"
 SIGMA_TOLERANCE = 0.20
 SIGMA_TOLERANCE_SHORT_STIM = 0.35
+T10_AT_NORMAL_3_SIGMA = float(stats.t.ppf(stats.norm.cdf(3.0), 10))
+"""Student-t quantile, 10 dof, with the false-alarm rate of a normal 3σ (two-sided 0.27 %): 3.96."""
 """A STIM300 over 8 × 2 s: σ/limit measured 0.80–1.26 (and 0.85–1.14 over 8 × 5 s, seeds 1–3): its
 bias instability (0.3 °/h, 100 s) is not small against the ~1 °/h a 5° σ means, and the motion
 fit's σ over a span mostly in motion scatters. The 20 % claim for the STIM is shown at 8 × 20 s by
@@ -83,7 +86,7 @@ def _find(tmp_path: Path, models: dict[str, str], grade: str, *faults: str) -> t
 
 
 def _check(result: dict, run_dir: Path, grade: str, models: dict[str, str],
-           sigma_tolerance: float | None = SIGMA_TOLERANCE) -> None:
+           sigma_tolerance: float | None = SIGMA_TOLERANCE, k_sigma: float = 3.0) -> None:
     assert result["complete"] and result["positions_measured"] == POSITIONS
     roles = {"stage": "turntable", "imu": "imu", "tilt": "accelerometer"}
     assert {roles[r]: m for r, m in models.items()}.items() <= {
@@ -91,7 +94,7 @@ def _check(result: dict, run_dir: Path, grade: str, models: dict[str, str],
     }.items()
     err = (result["heading_deg"] - result["truth"]["heading_deg"] + 180.0) % 360.0 - 180.0
     sigma, limit = result["heading_std_deg"], _limit_deg(result, grade)
-    assert abs(err) < 3.0 * sigma, (err, sigma)
+    assert abs(err) < k_sigma * sigma, (err, sigma)
     if sigma_tolerance is not None:
         assert abs(sigma / limit - 1.0) < sigma_tolerance, (sigma, limit)
     again = replay(run_dir)
@@ -114,8 +117,11 @@ def test_stim_finds_north_with_corrupt_and_flagged_datagrams_counted(tmp_path):
     result, run_dir = _find(tmp_path, models, "stim300", "imu-crc-rate=0.002", "imu-invalid-rate=0.002")
     # σ is not held to the limit here: the motion fit leaves out every stretch between dwells that
     # holds a lost sample (faults.md), which at this rate is most or all of them, and the dwells'
-    # own σ (8 means, 10 degrees of freedom) scatters by ~22 % around the limit
-    _check(result, run_dir, "stim300", models, sigma_tolerance=None)
+    # own σ (8 means, 10 degrees of freedom) scatters by ~22 % around the limit. The error over
+    # that estimated σ is then Student-t with 10 dof: 3σ would fail 1.3 % of honest runs (once in
+    # CI, 3.27σ, when the host's load moved the dwells onto other noise); the bound with the normal
+    # 3σ's false-alarm rate (0.27 %) is t₁₀ = 3.96.
+    _check(result, run_dir, "stim300", models, sigma_tolerance=None, k_sigma=T10_AT_NORMAL_3_SIGMA)
     motion = result["motion_fit"]
     assert not motion["available"] or motion["samples"]["stretches_dropped"] > 0, motion
     imu = result["faults"]["imu"]
