@@ -95,6 +95,24 @@ class Progress:
     means: PositionMeans | None = None
 
 
+class RunningMeans:
+    """A dwell's per-axis gyro mean and σ of the mean so far [°/h], for the live progress; samples
+    flagged not valid (NaN) are left out."""
+
+    def __init__(self) -> None:
+        self.s1, self.s2, self.n_ok = np.zeros(3), np.zeros(3), np.zeros(3)
+
+    def add(self, gyro_dph: np.ndarray) -> tuple[list[float], list[float]]:
+        ok = np.isfinite(gyro_dph)
+        self.n_ok += ok.sum(axis=0)
+        self.s1 += np.where(ok, gyro_dph, 0.0).sum(axis=0)
+        self.s2 += (np.where(ok, gyro_dph, 0.0) ** 2).sum(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = self.s1 / self.n_ok
+            var = np.maximum(self.s2 / self.n_ok - mean**2, 0.0)
+        return mean.tolist(), np.sqrt(var / np.maximum(self.n_ok, 1)).tolist()
+
+
 @dataclass(frozen=True)
 class DwellData:
     """One dwell as read: the IMU's blocks, the tilt sensor's block, the IMU's verdict (made while the
@@ -513,10 +531,8 @@ class Sequencer:
             self._align_to_grid(n_grid)
         blocks = []
         windows = DisturbanceWindows(imu_window(rate, self.limits.dwell))
+        running = RunningMeans()
         got = 0
-        s1 = np.zeros(3)
-        s2 = np.zeros(3)
-        n_ok = np.zeros(3)
         while got < n_total:
             self._check_stop()
             block = self._read_imu(min(n_chunk, n_total - got))
@@ -524,25 +540,10 @@ class Sequencer:
             g = np.asarray(block.gyro_rad_s) / DPH
             windows.add(np.hstack([g, np.asarray(block.accel_g)]))
             got += g.shape[0]
-            ok = np.isfinite(g)  # samples flagged not valid are NaN: left out
-            n_ok += ok.sum(axis=0)
-            s1 += np.where(ok, g, 0.0).sum(axis=0)
-            s2 += (np.where(ok, g, 0.0) ** 2).sum(axis=0)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                mean = s1 / n_ok
-                var = np.maximum(s2 / n_ok - mean**2, 0.0)
-            self.on_progress(
-                Progress(
-                    index + 1,
-                    len(self._plan),
-                    "dwell",
-                    target_deg,
-                    dwell_done_s=got / rate,
-                    dwell_s=cfg.dwell_s,
-                    gyro_mean_dph=mean.tolist(),
-                    gyro_std_of_mean_dph=np.sqrt(var / np.maximum(n_ok, 1)).tolist(),
-                )
-            )
+            mean, std_of_mean = running.add(g)
+            self.on_progress(Progress(index + 1, len(self._plan), "dwell", target_deg,
+                                      dwell_done_s=got / rate, dwell_s=cfg.dwell_s, gyro_mean_dph=mean,
+                                      gyro_std_of_mean_dph=std_of_mean))
             if self._rest_angle_deg is None:
                 self._rest_angle_deg = float(self.turntable.angle_deg())  # at rest: any time in the dwell
         self._check_stop()
