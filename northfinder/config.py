@@ -67,10 +67,6 @@ class ImuConfig:
     port: str = ""
     rate_hz: int = 1000
     baudrate: int = 921600
-    link_timeout_s: float = 1.0
-    """Host seconds without a byte after which the stream counts as paused (its length unknown: the
-    7-bit sequence aliases every 128 samples). Bytes a USB adapter holds back and then bursts are
-    no pause; lost samples are decided by the sequence counter."""
     rot_format: str = "DELTA"
     """Gyro field as the IMU is configured to send it (`?ROTFMT`): DELTA angle or RATE."""
     rot_units: str = "RAD"
@@ -268,6 +264,12 @@ def _coerce(section: str, name: str, value: Any, default: Any, source: str) -> A
     return value  # pragma: no cover - every field has a typed default
 
 
+RETIRED_KEYS = {"imu": ("link_timeout_s",)}
+"""Keys older bench files and run directories (config.json) hold that no longer mean anything,
+read and ignored: `[imu] link_timeout_s` made host silence a pause of the IMU stream; a pause is now
+decided from the bytes alone (a gap whose bytes never came)."""
+
+
 def from_dict(data: dict[str, Any], source: str = "<dict>") -> BenchConfig:
     """Build and validate a BenchConfig from parsed TOML; unknown tables or keys are errors."""
     cfg = BenchConfig(source=source)
@@ -279,6 +281,8 @@ def from_dict(data: dict[str, Any], source: str = "<dict>") -> BenchConfig:
         target = getattr(cfg, section)
         names = {f.name for f in dataclasses.fields(target)}
         for name, value in body.items():
+            if name in RETIRED_KEYS.get(section, ()):
+                continue
             if name not in names:
                 raise ConfigError(
                     f"{source}: unknown key [{section}] {name}; allowed: {', '.join(sorted(names))}"
@@ -338,8 +342,6 @@ def _validate_devices(cfg: BenchConfig, need: Callable[[bool, str, Any, str], No
         f"use one of {', '.join(map(str, IMU_RATES_HZ))}",
     )
     need(i.baudrate > 0, "[imu] baudrate", i.baudrate, "use a positive baud rate")
-    need(math.isfinite(i.link_timeout_s) and i.link_timeout_s > 0, "[imu] link_timeout_s", i.link_timeout_s,
-         "use a positive time in s (1 s suits a USB-serial adapter)")
     need(
         bool(a.interface),
         "[accelerometer] interface",

@@ -147,18 +147,24 @@ def test_bytes_held_back_and_burst_are_no_pause_and_lose_nothing(pty_pair):
     assert block.sample_index.tolist() == list(range(n))
 
 
-def test_a_silence_longer_than_the_link_timeout_is_a_pause(pty_pair):
+def test_a_device_pause_is_a_gap_of_unknown_length_and_a_host_silence_none(pty_pair):
+    """The device silent for 300 samples (their bytes never sent), written without a host pause:
+    a pause at the first frame after it, decided from the bytes (the sequence says 44 lost, the
+    missing bytes say it may be 128·k more). Then 0.6 s of host silence with the sequence
+    continuous: no pause — host time decides no loss."""
     master, path = pty_pair
-    data, _, _ = _stream(400, 0x77)
-    half = 200 * kvh.FRAME_SIZE
-    with Imu(path, wait_for_data=False, link_timeout_s=0.3) as imu:
-        write_all(master, data[:half])
+    data, _, _ = _stream(900, 0x77)
+    f = kvh.FRAME_SIZE
+    with Imu(path, wait_for_data=False) as imu:
+        write_all(master, data[: 200 * f] + data[500 * f : 700 * f])
+        block = imu.read(400, timeout_s=5)
+        time.sleep(0.6)
+        write_all(master, data[700 * f :])
         imu.read(200, timeout_s=5)
-        time.sleep(0.6)  # longer than the link timeout: 128·k samples could hide in it
-        write_all(master, data[half:])
-        imu.read(200, timeout_s=5)
-        stalls = imu.stall_indices
-    assert stalls == [200]
+        stalls, stats = imu.stall_indices, imu.stats
+    assert block.sample_index[200] - block.sample_index[199] == 1 + 300 % 128
+    assert stalls == [int(block.sample_index[200])]
+    assert stats.lost_samples == 300 % 128
 
 
 class _StarvedTransport:
@@ -191,8 +197,8 @@ class _StarvedTransport:
 def test_a_reader_kept_off_the_cpu_is_no_pause():
     data, _, _ = _stream(400, 0x77)
     half = 200 * kvh.FRAME_SIZE
-    with Imu("starved://kvh", transport=_StarvedTransport([data[:half], data[half:]]), wait_for_data=False,
-             link_timeout_s=1.0) as imu:
+    with Imu("starved://kvh", transport=_StarvedTransport([data[:half], data[half:]]),
+             wait_for_data=False) as imu:
         block = imu.read(400, timeout_s=10)
         stalls = imu.stall_indices
     assert stalls == [] and block.lost_samples == 0

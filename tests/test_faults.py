@@ -79,7 +79,7 @@ def _sim_config(faults: list[str], seed: int = 3, **overrides) -> object:
 
 
 def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS, dwell_s: float = DWELL_S,
-                during_dwell=None, phase: str | None = "dwell", link_timeout_s: float = 1.0,
+                during_dwell=None, phase: str | None = "dwell",
                 sim_overrides: dict | None = None, **seq_kwargs) -> dict:
     """One find on an in-process firmware_sim with `faults`; the result (or RunFailed raised).
 
@@ -99,7 +99,6 @@ def _in_process(run_dir: Path, faults: list[str], *, positions: int = POSITIONS,
         cfg.accelerometer.rate_hz = ACCEL_RATE_HZ
         cfg.run.positions = positions
         cfg.run.dwell_s = dwell_s
-        cfg.imu.link_timeout_s = link_timeout_s
         cfg.validate()
         settings = SimSettings(**TRUTH, time_scale=TIME_SCALE)
         return measure(cfg, RunDir(run_dir), settings=settings, report=False,

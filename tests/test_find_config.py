@@ -81,6 +81,14 @@ def test_unknown_table_and_key_are_named(tmp_path):
         bench.load(p)
 
 
+def test_a_retired_key_of_an_older_bench_file_is_read_and_ignored(tmp_path):
+    p = tmp_path / "bench.toml"
+    p.write_text("[imu]\nport = '/dev/ttyUSB1'\nlink_timeout_s = 1.0\n")
+    cfg = bench.load(p)
+    assert cfg.imu.port == "/dev/ttyUSB1" and not hasattr(cfg.imu, "link_timeout_s")
+    assert "link_timeout_s" not in cfg.to_dict()["imu"]
+
+
 def test_missing_file_is_one_clear_error(tmp_path):
     with pytest.raises(ConfigError, match="no such configuration file"):
         bench.load(tmp_path / "nope.toml")

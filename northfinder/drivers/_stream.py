@@ -7,9 +7,9 @@ port, the Condition, the reader's error), opens its transport into `_t` (`read_a
 the one bounded wait on a Condition; the CAN accelerometer waits on it too.
 
 No byte is interpreted here: the frames are the subclasses' codecs' (KVH format A per the 1775
-ICD 56-0298 §5, the STIM datagrams per TS1524 §5, NMEA 0183 sentences). Host time bounds the
-waits and measures a link's silence as the sum of empty reads; which samples were lost, and how
-many, the codecs decide from the devices' own counters.
+ICD 56-0298 §5, the STIM datagrams per TS1524 §5, NMEA 0183 sentences). Host time only bounds
+the waits; which samples were lost, and how many, the codecs decide from the devices' own
+counters and the bytes that came (a pause of the device is a gap whose bytes never came).
 """
 
 from __future__ import annotations
@@ -43,10 +43,6 @@ def wait_until(
         cond.wait(remaining)
 
 
-EMPTY_READ_MAX_S = 0.05
-"""What one empty read counts toward a silence at most when the transport does not say its time-out."""
-
-
 class StreamReader:
     """Background reader over a byte transport; a context manager."""
 
@@ -61,10 +57,8 @@ class StreamReader:
         self._error: BaseException | None = None
         """The reader thread's error, handed to the next waiting call."""
 
-    def _on_bytes(self, data: bytes, idle_s: float) -> None:
-        """New bytes from the port, called with `_cond` held. `idle_s`: host seconds the port was
-        seen empty before them (the empty reads' durations, each at most the read's time-out; 0 when
-        bytes kept coming)."""
+    def _on_bytes(self, data: bytes) -> None:
+        """New bytes from the port, called with `_cond` held."""
         raise NotImplementedError
 
     # -- the reader thread -------------------------------------------------------------------
@@ -82,13 +76,7 @@ class StreamReader:
 
     def _read_loop(self) -> None:
         stop = self._stop  # a reconnect replaces the event; this thread answers to its own
-        # Silence is what the port showed, not host time gone by: each empty read adds its own
-        # duration, at most the read's time-out. A reader kept off the CPU (a loaded host, the GIL)
-        # saw no empty port meanwhile, and the bytes waiting for it are no pause (issue 27).
-        empty_read_max_s = float(getattr(self._t, "timeout_s", None) or EMPTY_READ_MAX_S)
-        silent_s = 0.0
         while not stop.is_set():
-            t_read = time.monotonic()
             try:
                 data = self._t.read_available()
             except BaseException as exc:  # noqa: BLE001 - handed to the reading thread
@@ -97,11 +85,9 @@ class StreamReader:
                     self._cond.notify_all()
                 return
             if not data:
-                silent_s += min(time.monotonic() - t_read, empty_read_max_s)
                 continue
-            idle_s, silent_s = silent_s, 0.0
             with self._cond:
-                self._on_bytes(data, idle_s)
+                self._on_bytes(data)
                 self._cond.notify_all()
 
     def _wait_locked(

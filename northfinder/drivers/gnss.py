@@ -93,7 +93,7 @@ class Gnss(StreamReader):
                 raise
 
     # -- background reader -------------------------------------------------------------------
-    def _on_bytes(self, data: bytes, idle_s: float) -> None:
+    def _on_bytes(self, data: bytes) -> None:
         self._pending.extend(self._decoder.feed(data))
 
     def _good_sentences(self) -> int:

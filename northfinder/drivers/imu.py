@@ -75,13 +75,7 @@ class Imu(SampleQueue, StreamReader):
         rot_units: str = "RAD",
         wait_for_data: bool = True,
         transport: _ByteTransport | None = None,
-        link_timeout_s: float = 1.0,
     ) -> None:
-        """`link_timeout_s`: host seconds the port was seen empty (while streaming; empty reads, so a
-        reader starved of CPU meanwhile does not count) after which the stream counts as paused (see
-        :attr:`stall_indices`). Generous on purpose: a USB-serial adapter may
-        hold bytes back for a few hundred ms and then burst them, which loses nothing (the
-        sequence counter decides that); only a silence this long can hide 128·k lost samples."""
         super().__init__(port, timeout_s)
         self.rate_hz = float(rate_hz)
         self.rot_format = rot_format.upper()
@@ -98,7 +92,6 @@ class Imu(SampleQueue, StreamReader):
             raw_log = open(raw_log, "wb")  # noqa: SIM115 - closed in close()
         self._raw_log = raw_log
         self.reconnects = 0
-        self.link_timeout_s = float(link_timeout_s)
         self._stalls: list[int] = []
         self._mark_stall = False
         self._unknown_seen = 0
@@ -192,17 +185,16 @@ class Imu(SampleQueue, StreamReader):
 
     @property
     def stall_indices(self) -> list[int]:
-        """Device sample index of the first frame after each pause of the stream (no byte for
-        `link_timeout_s` host seconds outside config mode, or a reconnect) and after each gap whose
-        bytes never arrived (ImuBlock.unknown_gaps). A pause longer than 128 samples cannot be
-        counted from the 7-bit sequence number (it aliases), so a sample range that contains one of
-        these indices has an unknown gap: the caller measures it again."""
+        """Device sample index of the first frame after each gap whose bytes never arrived (a pause
+        of the device, a line overrun: ImuBlock.unknown_gaps) and after each reconnect. Such a gap
+        cannot be counted from the 7-bit sequence number (it aliases every 128 samples), so a sample
+        range that contains one of these indices has an unknown gap: the caller measures it again.
+        Decided from the bytes alone, so replay finds the same gaps; host time plays no part (bytes a
+        USB adapter holds back and bursts, or a reader kept off the CPU, are no pause)."""
         with self._cond:
             return list(self._stalls)
 
-    def _on_bytes(self, data: bytes, idle_s: float) -> None:
-        if idle_s >= self.link_timeout_s and not self._config_mode and self._decoder.stats.frames:
-            self._mark_stall = True
+    def _on_bytes(self, data: bytes) -> None:
         if self._listening:
             self._text += data
         self._find_bit_messages(data)

@@ -79,8 +79,7 @@ def _open(section: Any, log_path: Any, options: dict[str, Any]) -> KvhImu:
     if "transport" not in kwargs:
         kwargs["raw_log"] = log_path
     return KvhImu(value(section, "port", ""), baudrate=value(section, "baudrate", 921600),
-                  timeout_s=options.get("timeout_s", 10.0),  # ≥ 10 s host time: a loaded host
-                  link_timeout_s=value(section, "link_timeout_s", 1.0), **kwargs)
+                  timeout_s=options.get("timeout_s", 10.0), **kwargs)  # ≥ 10 s host time: a loaded host
 
 
 SPEC = ModelSpec("imu", "kvh", _open, KvhLogDecoder, "KVH 1750/1760/1775, format A")

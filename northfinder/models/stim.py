@@ -189,16 +189,14 @@ class StimImu(SampleQueue, StreamReader, InertialStream):
     device = DEVICE
 
     def __init__(self, port: str, *, baudrate: int = 921600, raw_log: str | Path | None = None,
-                 timeout_s: float = 5.0, link_timeout_s: float = 1.0) -> None:
+                 timeout_s: float = 5.0) -> None:
         super().__init__(port, timeout_s)
-        self.link_timeout_s = float(link_timeout_s)
         self._text = bytearray()
         self._stream: StimStream | None = None
         self._pending: list[tuple[np.ndarray, stim.StimSamples]] = []
         self._pending_n = 0
         self._newest_index: int | None = None
         self._stalls: list[int] = []
-        self._mark_stall = False
         self._unknown_seen = 0
         self._t = SerialTransport(port, device=DEVICE, baudrate=baudrate, timeout_s=0.05, raw_log=raw_log)
         self._start_reader()
@@ -244,13 +242,11 @@ class StimImu(SampleQueue, StreamReader, InertialStream):
     # -- reader ------------------------------------------------------------------------------
     _last_rx = 0.0
 
-    def _on_bytes(self, data: bytes, idle_s: float) -> None:
+    def _on_bytes(self, data: bytes) -> None:
         self._last_rx = time.monotonic()
         if self._stream is None:  # the listing (and any datagram before it): not data
             self._text += data
             return
-        if idle_s >= self.link_timeout_s:
-            self._mark_stall = True
         self._feed(data)
 
     def _feed(self, data: bytes) -> None:
@@ -262,9 +258,6 @@ class StimImu(SampleQueue, StreamReader, InertialStream):
             self._unknown_seen = len(unknown)
         if not len(index):
             return
-        if self._mark_stall:
-            self._stalls.append(int(index[0]))
-            self._mark_stall = False
         self._pending.append((index, s))
         self._pending_n += len(index)
         self._newest_index = int(index[-1])
@@ -393,8 +386,7 @@ class StimLogDecoder(ImuDecoder):
 
 def _open(section: Any, log_path: Any, options: dict[str, Any]) -> StimImu:
     return StimImu(value(section, "port", ""), baudrate=value(section, "baudrate", 921600), raw_log=log_path,
-                   timeout_s=options.get("timeout_s", 5.0),
-                   link_timeout_s=value(section, "link_timeout_s", 1.0))
+                   timeout_s=options.get("timeout_s", 5.0))
 
 
 SPEC = ModelSpec("imu", "stim", _open, StimLogDecoder, "Sensonor STIM300/STIM318, normal-mode datagrams")
