@@ -340,6 +340,9 @@ class ChunkedSlcanBus(slcanBus):
     get_version, the line parser in ``_recv_internal``) is the stock class's.
     """
 
+    _fd: int | None = None
+    _fd_looked_up = False
+
     def _take_line(self) -> str | None:
         """The first whole line in the buffer (terminator included), removed from it; or None."""
         buf = self._buffer
@@ -356,7 +359,9 @@ class ChunkedSlcanBus(slcanBus):
     def _read(self, timeout: float | None) -> str | None:
         deadline = serial.Timeout(timeout)
         port = self.serialPortOrig
-        fd = _select_fd(port)
+        if not self._fd_looked_up:  # once: the read path runs per frame
+            self._fd, self._fd_looked_up = _select_fd(port), True
+        fd = self._fd
         while True:
             line = self._take_line()
             if line is not None:

@@ -112,14 +112,37 @@ class StreamReader:
 
 
 class SampleQueue:
-    """What a sample stream's reader (a StreamReader subclass) tells of the samples it decoded and
-    queued for `read`: it keeps `_pending_n` (queued, not read yet) and `_newest_index` (device
-    index of the newest decoded) under the reader's Condition `_cond`."""
+    """The queue of decoded samples a sample stream's reader (a StreamReader subclass) keeps for
+    `read`, under the reader's Condition `_cond`: `_pending`, chunks of (device indices, the model's
+    samples), `_pending_n` samples in them, and `_newest_index`, the device index of the newest
+    decoded."""
 
     _cond: threading.Condition
     _error: BaseException | None
+    _pending: list[tuple[Any, Any]]
     _pending_n: int
     _newest_index: int | None
+
+    def _take_pending(self, n: int, cut: Callable[[Any, int, int], Any]) -> list[tuple[Any, Any]]:
+        """With `_cond` held and n samples queued: the first n as (indices, samples) chunks, in
+        order; only the chunks needed (a long backlog is not copied on every read). `cut(samples,
+        lo, hi)` slices a chunk's samples."""
+        taken, got = [], 0
+        while got < n:
+            index, samples = self._pending.pop(0)
+            k = min(len(index), n - got)
+            taken.append((index[:k], cut(samples, 0, k)))
+            if k < len(index):
+                self._pending.insert(0, (index[k:], cut(samples, k, len(index))))
+            got += k
+        self._pending_n -= n
+        return taken
+
+    def discard_pending(self) -> int:
+        """Drop samples decoded but not read yet (e.g. those from before a move); returns how many."""
+        with self._cond:
+            n, self._pending, self._pending_n = self._pending_n, [], 0
+        return n
 
     def newest_index(self) -> int | None:
         """Device index of the newest sample decoded (read or not); None before the first."""

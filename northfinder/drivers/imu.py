@@ -282,15 +282,7 @@ class Imu(SampleQueue, StreamReader):
                 lambda: f"only {self._pending_n} of {n} samples arrived within {wait_s:g} s on {self.port} "
                 "— is the IMU still streaming (cable, rate, not left in config mode)?",
             )
-            taken, got = [], 0
-            while got < n:  # only the chunks needed: a long backlog is not copied on every read
-                index, frames = self._pending.pop(0)
-                k = min(len(index), n - got)
-                taken.append((index[:k], frames[:k]))
-                if k < len(index):
-                    self._pending.insert(0, (index[k:], frames[k:]))
-                got += k
-            self._pending_n -= n
+            taken = self._take_pending(n, lambda frames, lo, hi: frames[lo:hi])
             rate, fmt, units = self.rate_hz, self.rot_format, self.rot_units
             first, last = int(taken[0][0][0]), int(taken[-1][0][-1])
             gaps = tuple(k for k in self._decoder.unknown_gap_indices if first <= k <= last)
@@ -322,12 +314,6 @@ class Imu(SampleQueue, StreamReader):
             return frames_to_block(np.zeros(0, np.int64), np.zeros(0, kvh.FRAME_DTYPE), rate, fmt, units)
         return frames_to_block(np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks]),
                                rate, fmt, units)
-
-    def discard_pending(self) -> int:
-        """Drop samples decoded but not read yet (e.g. those from before a move); returns how many."""
-        with self._cond:
-            n, self._pending, self._pending_n = self._pending_n, [], 0
-        return n
 
     @property
     def stats(self) -> ImuStats:

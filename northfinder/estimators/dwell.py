@@ -173,9 +173,12 @@ def imu_window(imu_rate_hz: float, limits: DwellLimits) -> int:
 
 def imu_dwell_verdict(blocks: list[Any], *, imu_rate_hz: float, gyro_axes: str, stalls: list[int],
                       limits: DwellLimits, windows: DisturbanceWindows | None = None) -> DwellVerdict:
-    """The IMU's share of :func:`dwell_problems` (its ImuBlocks): the sequencer works it out while
-    the tilt sensor's dwell is still arriving. `windows`: the same blocks' DisturbanceWindows, kept
-    as they arrived (gyro in °/h, then accelerometer), which spares the pass over the samples."""
+    """The IMU's share of why a dwell must be measured again (its ImuBlocks): a gap or too many lost
+    samples (device sample counters; `stalls`: first index after each gap of unknown length), samples
+    flagged not valid, or a disturbance in the gyro and accelerometer statistics. The sequencer
+    works it out while the tilt sensor's dwell is still arriving. `windows`: the same blocks'
+    DisturbanceWindows, kept as they arrived (gyro in °/h, then accelerometer), which spares the
+    pass over the samples."""
     rate = float(imu_rate_hz)
     idx = np.concatenate([np.asarray(b.sample_index) for b in blocks])
     gyro = np.concatenate([np.asarray(b.gyro_rad_s) for b in blocks], axis=0) / DPH
@@ -196,7 +199,8 @@ def imu_dwell_verdict(blocks: list[Any], *, imu_rate_hz: float, gyro_axes: str, 
 
 
 def accel_dwell_verdict(accel_block: Any, *, accel_rate_hz: float, limits: DwellLimits) -> DwellVerdict:
-    """The tilt sensor's share of :func:`dwell_problems` (its AccelBlock)."""
+    """The tilt sensor's share of why a dwell must be measured again (its AccelBlock): too many
+    samples lost, or a disturbance."""
     counter = np.asarray(accel_block.counter)
     a_lost = int(accel_block.lost_samples)
     if a_lost > limits.accel_max_lost_fraction * max(counter.size, 1):
@@ -215,14 +219,3 @@ def combine_verdicts(*verdicts: DwellVerdict) -> list[str]:
     counts = [p for v in verdicts for p in v.counts]
     return counts or [p for v in verdicts for p in v.disturbances]
 
-
-def dwell_problems(blocks: list[Any], accel_block: Any, *, imu_rate_hz: float, accel_rate_hz: float,
-                   gyro_axes: str, stalls: list[int], limits: DwellLimits) -> list[str]:
-    """Why a dwell must be measured again (empty if it is good): a gap or too many lost samples
-    (device sample counters; `stalls`: first index after each pause of unknown length), samples
-    flagged not valid, or a disturbance in the gyro/accelerometer statistics. `blocks`: the IMU's
-    ImuBlocks, `accel_block` the tilt sensor's AccelBlock."""
-    return combine_verdicts(
-        imu_dwell_verdict(blocks, imu_rate_hz=imu_rate_hz, gyro_axes=gyro_axes, stalls=stalls, limits=limits),
-        accel_dwell_verdict(accel_block, accel_rate_hz=accel_rate_hz, limits=limits),
-    )

@@ -272,24 +272,10 @@ class StimImu(SampleQueue, StreamReader, InertialStream):
             self._wait_locked(lambda: self._pending_n >= n, wait_s,
                               lambda: f"only {self._pending_n} of {n} samples arrived within {wait_s:g} s on "
                               f"{self.port} — is the STIM still streaming (cable, left in Service Mode)?")
-            idx_parts, rows, got = [], [], 0
-            while got < n:
-                index, s = self._pending.pop(0)
-                k = min(len(index), n - got)
-                idx_parts.append(index[:k])
-                rows.append(_take(s, 0, k))
-                if k < len(index):
-                    self._pending.insert(0, (index[k:], _take(s, k, len(index))))
-                got += k
-            self._pending_n -= n
-            index = np.concatenate(idx_parts)
+            taken = self._take_pending(n, _take)
+            index = np.concatenate([c[0] for c in taken])
             gaps = [k for k in self._stream.unknown_gaps if index[0] <= k <= index[-1]]  # type: ignore[union-attr]
-        return samples_to_block(index, _concat(rows), self.cfg, gaps)
-
-    def discard_pending(self) -> int:
-        with self._cond:
-            n, self._pending, self._pending_n = self._pending_n, [], 0
-        return n
+        return samples_to_block(index, _concat([c[1] for c in taken]), self.cfg, gaps)
 
     @property
     def failed(self) -> BaseException | None:
