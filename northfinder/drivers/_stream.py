@@ -43,6 +43,16 @@ def wait_until(
         cond.wait(remaining)
 
 
+def read_bounds(n_samples: int, rate_hz: float, default_s: float,
+                timeout_s: float | None) -> tuple[int, float]:
+    """A `read(n_samples, timeout_s)`'s sample count (≥ 1, else ValueError) and its host bound: the
+    given time-out, else the reader's own plus the samples' duration."""
+    n = int(n_samples)
+    if n < 1:
+        raise ValueError("n_samples must be >= 1")
+    return n, (default_s + n / rate_hz if timeout_s is None else float(timeout_s))
+
+
 class StreamReader:
     """Background reader over a byte transport; a context manager."""
 

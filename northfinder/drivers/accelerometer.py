@@ -64,7 +64,7 @@ from northfinder.codecs.canopen import (
     object_role,
     samples_to_block,
 )
-from northfinder.drivers._stream import wait_until
+from northfinder.drivers._stream import read_bounds, wait_until
 from northfinder.errors import DeviceError
 from northfinder.transport import open_can_bus
 
@@ -559,10 +559,7 @@ class Accelerometer:
 
     def read(self, n_samples: int, timeout_s: float | None = None) -> AccelBlock:
         """The next `n_samples` paired samples, blocking; DeviceError naming the channel on timeout."""
-        n = int(n_samples)
-        if n < 1:
-            raise ValueError("n_samples must be >= 1")
-        wait_s = self.timeout_s + n / self.rate_hz if timeout_s is None else float(timeout_s)
+        n, wait_s = read_bounds(n_samples, self.rate_hz, self.timeout_s, timeout_s)
         with self._lock:
             self._want = n  # the bus thread wakes this one when n are there, not at every sample
             try:

@@ -40,7 +40,7 @@ import numpy as np
 
 from northfinder.codecs import kvh
 from northfinder.codecs.kvh import ImuBlock, ImuStats, KvhDecoder, decode_imu_stream, frames_to_block
-from northfinder.drivers._stream import SampleQueue, StreamReader
+from northfinder.drivers._stream import SampleQueue, StreamReader, read_bounds
 from northfinder.errors import ConfigError, DeviceError
 from northfinder.transport import SerialTransport
 
@@ -271,10 +271,7 @@ class Imu(SampleQueue, StreamReader):
     # -- samples -----------------------------------------------------------------------------
     def read(self, n_samples: int, timeout_s: float | None = None) -> ImuBlock:
         """The next `n_samples` samples, blocking; DeviceError naming the port on timeout."""
-        n = int(n_samples)
-        if n < 1:
-            raise ValueError("n_samples must be >= 1")
-        wait_s = self.timeout_s + n / self.rate_hz if timeout_s is None else float(timeout_s)
+        n, wait_s = read_bounds(n_samples, self.rate_hz, self.timeout_s, timeout_s)
         with self._cond:
             self._wait_locked(
                 lambda: self._pending_n >= n,

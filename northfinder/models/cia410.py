@@ -28,6 +28,7 @@ from northfinder.codecs import cia410
 from northfinder.codecs.canopen import HEARTBEAT_STATES
 from northfinder.devices.registry import ModelSpec
 from northfinder.devices.tilt import AccelBlock, TiltDecoder, TiltSensor
+from northfinder.drivers._stream import read_bounds
 from northfinder.drivers.accelerometer import Accelerometer
 from northfinder.errors import DeviceError
 from northfinder.models._section import value
@@ -123,10 +124,7 @@ class Cia410Inclinometer(Accelerometer, TiltSensor):
         super()._on_frame(msg)
 
     def read(self, n_samples: int, timeout_s: float | None = None) -> AccelBlock:
-        n = int(n_samples)
-        if n < 1:
-            raise ValueError("n_samples must be >= 1")
-        wait_s = self.timeout_s + n / self.rate_hz if timeout_s is None else float(timeout_s)
+        n, wait_s = read_bounds(n_samples, self.rate_hz, self.timeout_s, timeout_s)
         with self._lock:
             self._wait_locked(lambda: self._slopes.pending() >= n, wait_s,
                               lambda: f"only {self._slopes.pending()} of {n} slopes from node "

@@ -28,7 +28,7 @@ import numpy as np
 from northfinder.codecs import stim
 from northfinder.devices.imu import ImuAxes, ImuBlock, ImuDecoder, InertialStream
 from northfinder.devices.registry import ModelSpec
-from northfinder.drivers._stream import SampleQueue, StreamReader
+from northfinder.drivers._stream import SampleQueue, StreamReader, read_bounds
 from northfinder.errors import DeviceError, InputError
 from northfinder.models._section import value
 from northfinder.transport import SerialTransport
@@ -264,10 +264,7 @@ class StimImu(SampleQueue, StreamReader, InertialStream):
 
     # -- the role ----------------------------------------------------------------------------
     def read(self, n_samples: int, timeout_s: float | None = None) -> ImuBlock:
-        n = int(n_samples)
-        if n < 1:
-            raise ValueError("n_samples must be >= 1")
-        wait_s = self.timeout_s + n / self.rate_hz if timeout_s is None else float(timeout_s)
+        n, wait_s = read_bounds(n_samples, self.rate_hz, self.timeout_s, timeout_s)
         with self._cond:
             self._wait_locked(lambda: self._pending_n >= n, wait_s,
                               lambda: f"only {self._pending_n} of {n} samples arrived within {wait_s:g} s on "
