@@ -45,6 +45,9 @@ class Faults:
     """Device time from which the CAN accelerometer sends no heartbeat."""
     accel_sdo_silent: float | None = None
     """Device time from which the CAN accelerometer answers no SDO request."""
+    accel_start_lag: float | None = None
+    """Device seconds from each NMT start to the CAN accelerometer's first sample (a sensor whose
+    filter settles first, or a link that lags: its dwell then ends that much after the IMU's)."""
     disturbance: tuple[float, float, float] | None = None
     """(start_s, duration_s, amplitude_deg): a knock on the platform."""
     gnss_bad_checksum_rate: float = 0.0
@@ -75,6 +78,8 @@ class Faults:
             out["accel-heartbeat-loss"] = self.accel_heartbeat_loss
         if self.accel_sdo_silent is not None:
             out["accel-sdo-silent"] = self.accel_sdo_silent
+        if self.accel_start_lag is not None:
+            out["accel-start-lag"] = self.accel_start_lag
         return out
 
 
@@ -90,6 +95,7 @@ _DOC = {
     "accel-emcy": "AT_S or AT_S:CODE (device seconds, CANopen code), e.g. accel-emcy=3:0x5000",
     "accel-heartbeat-loss": "AT_S in device seconds, e.g. accel-heartbeat-loss=4",
     "accel-sdo-silent": "AT_S in device seconds, e.g. accel-sdo-silent=0",
+    "accel-start-lag": "LAG_S in device seconds after each NMT start, e.g. accel-start-lag=2",
     "disturbance": "START_S:DURATION_S:AMPLITUDE_DEG, e.g. disturbance=20:0.5:0.1",
     "gnss-bad-checksum-rate": "a probability 0..1 per NMEA sentence, e.g. gnss-bad-checksum-rate=0.01",
     "gnss-truncate-rate": "a probability 0..1 per NMEA sentence, e.g. gnss-truncate-rate=0.01",
@@ -158,7 +164,7 @@ def parse_fault(name: str, value: object) -> tuple[str, object]:
         if not 0 <= code <= 0xFFFF:
             raise FaultError(f"fault {key}={text}: CODE must fit 16 bits; expected {_DOC[key]}")
         parsed = (at_s, code)
-    elif key in ("accel-heartbeat-loss", "accel-sdo-silent"):
+    elif key in ("accel-heartbeat-loss", "accel-sdo-silent", "accel-start-lag"):
         (parsed,) = _floats(key, text, 1, 1)
     else:  # disturbance
         start, dur, amp = _floats(key, text, 3, 3)

@@ -16,8 +16,8 @@ device time it was produced; the shaper writes it to the pty when it is due. Two
 
 Nothing is ever lost or reordered here; bytes go to the port in the order they came. The shaper is
 pumped once per loop tick, so a due time is met to within one tick (TICK_WALL_S × time_scale of
-device time). The hold is the one place in firmware_sim that reads the wall clock on purpose: what
-it models is a host-side stall, not a device behaviour.
+device time, at most TICK_DEVICE_S). The hold is the one place in firmware_sim that reads the wall
+clock on purpose: what it models is a host-side stall, not a device behaviour.
 """
 
 from __future__ import annotations

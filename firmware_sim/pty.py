@@ -118,21 +118,24 @@ class PtyPort:
         self._pending += data
         self.flush()
 
-    def flush(self) -> None:
-        """Push pending bytes into the pty until the kernel refuses more."""
+    def flush(self) -> int:
+        """Push pending bytes into the pty until the kernel refuses more; returns how many went."""
+        sent = 0
         while self._pending and not self.closed:
             try:
                 n = os.write(self.master_fd, self._pending)
             except BlockingIOError:
-                return
+                break
             except OSError as exc:
                 if exc.errno in (errno.EIO, errno.EAGAIN):
-                    return
+                    break
                 raise
             if n <= 0:
-                return
+                break
             self.bytes_written += n
+            sent += n
             del self._pending[:n]
+        return sent
 
     @property
     def pending(self) -> int:

@@ -2,7 +2,9 @@
 
 Each tick the loop reads the device clock once, services the ports that have input, then lets
 every device emit what it owes up to that device time. It sleeps in `select` between ticks
-(a few ms of wall time), waking at once when a client writes, so no core spins.
+(a few ms of wall time), waking at once when a client writes, so no core spins. Between ticks it
+also tops up every pty whose client has read: a pty holds ~20 kB, less than a tick's IMU bytes
+at a high time scale, and bytes left waiting for the next tick reach the client late.
 
 Scenarios (`SimConfig.scenario`): `bench` — SMC100 turntable, KVH IMU, CAN accelerometer on a
 still (or swaying) platform; `ship` — the KVH IMU alone on a `SwayingPlatform`, at a lever arm
@@ -46,6 +48,10 @@ log = logging.getLogger("firmware_sim.simulator")
 
 TICK_WALL_S = 0.005
 """Longest wall time between two ticks; input wakes the loop earlier."""
+TICK_DEVICE_S = 0.1
+"""…and longest device time: above 20× the ticks come closer (0.83 ms of wall time at 120×), so
+that a sample waits for its tick no longer in device time than ~0.1 s — at a 5 ms tick a client's
+reply to a sample came 0.6 device s late at 120×, and a dwell's end reached the stage that late."""
 CLIENT_STALL_WALL_S = 1.0
 """A connected IMU client may stop reading for this long (wall) before bytes are dropped."""
 CONNECT_GRACE_WALL_S = 0.05
@@ -531,9 +537,11 @@ class Simulator:
             temperature_c=cfg.imu_temperature_c, rng=np.random.default_rng(streams[_STREAM_CAN_FAULTS]),
             mapping=cfg.accel_mapping, make_model=remodel,
         )
-        if self.can_adapter is not None:
-            self.devices.append(self.can_adapter)
         self.devices.append(self.accelerometer)
+        if self.can_adapter is not None:
+            # after the node: what it sends in a tick reaches the wire in that tick, as through a
+            # real adapter (before it, every frame waited a tick: 0.6 device s at 120×)
+            self.devices.append(self.can_adapter)
 
     # -- endpoints --------------------------------------------------------------------------
     @property
@@ -627,11 +635,18 @@ class Simulator:
         if not self.holds_for_client:
             self.clock.start()
             self._clock_running = True
+        next_tick = time.monotonic()
         try:
             while not self._stop.is_set():
                 by_fd = {fd: d for d in self.devices if (fd := d.fileno()) is not None}
-                wfds = [p.fileno() for p in self._ports() if p.pending and not p.closed and p.connected]
-                readable, _, _ = select.select(list(by_fd), wfds, [], TICK_WALL_S)
+                backlogged = {p.fileno(): p for p in self._ports()
+                              if p.pending and not p.closed and p.connected}
+                wait_s = max(0.0, next_tick - time.monotonic())
+                readable, writable, _ = select.select(list(by_fd), list(backlogged), [], wait_s)
+                if writable and not readable and time.monotonic() < next_tick and \
+                        sum(backlogged[fd].flush() for fd in writable):
+                    continue  # a client read: its pty topped up at once, the tick still to come
+                next_tick = time.monotonic() + min(TICK_WALL_S, self.clock.wall_s(TICK_DEVICE_S))
                 if not self._clock_running and self._client_ready():
                     self.clock.start()
                     self._clock_running = True

@@ -48,6 +48,11 @@ class _EventLog(Protocol):  # northfinder.rundir.RunDir: the sequencer only appe
     def log_event(self, event: dict[str, Any]) -> None: ...
 
 
+CAUGHT_UP_WAIT_S = 0.5
+"""Host seconds the tilt sensor's start waits for the IMU reader to have read all the IMU sent, so
+that the IMU index it notes (a lower bound of the device clock) is not behind by a backlog: the
+accelerometer's dwell then ends soon after the IMU's (:meth:`Sequencer._accel_skip_s`). Only a
+bound: a reader that never catches up gives its newest index."""
 MIN_VISIBLE_MOVE_DEG = 0.5
 """Moves at least this long are expected to show in the gyro z before settling is judged."""
 SLOWEST_STAGE_DEG_S = 1.0
@@ -122,6 +127,10 @@ class DwellData:
     accel_block: AccelBlock
     imu_verdict: DwellVerdict
     table_angle_deg: float
+    accel_expected: int
+    """The tilt sensor's dwell as asked (the block may hold fewer when it stopped for the next move)."""
+    moved_on: bool = False
+    """The next move was commanded as soon as the IMU's dwell was in (:meth:`Sequencer.dwell`)."""
 
 
 @dataclass
@@ -506,22 +515,50 @@ class Sequencer:
             self._read_imu(n)
         return n / rate
 
-    def _read_accel(self, n: int) -> AccelBlock:
+    def _read_accel(self, n: int, until_stopped: bool = False) -> AccelBlock:
+        if until_stopped:
+            return self.accel.read_until_stopped(n, self._event)
         return self.accel.read_samples(n, self.limits.read_timeout_s)
 
-    def dwell(self, index: int, target_deg: float, settle_s: float = 0.0) -> DwellData:
+    def _may_move_on(self, n_wanted: int, n_dwell: int) -> bool:
+        """Whether the next move may be commanded before the tilt sensor's dwell is all here: the
+        sensor proves its stops, and what it has yet to send of the `n_wanted` samples since its
+        start — all it could lose to the stop — is within the dwell's allowed shortfall
+        (1 − accel_min_fraction of `n_dwell`): a sensor or link that lags more is waited for."""
+        if not self.accel.stop_reported:
+            return False
+        allowed = (1.0 - self.limits.dwell.accel_min_fraction) * n_dwell
+        return n_wanted - self.accel.pending_samples() <= allowed
+
+    def _skip_accel(self, n: int, until_stopped: bool) -> None:
+        """Drop the tilt sensor's next `n` samples of device time: counted by its sample counter, so
+        that the frames lost among them do not push its dwell later."""
+        last: int | None = None
+        while n > 0:
+            block = self._read_accel(n, until_stopped)
+            if not len(block):
+                return
+            counter = np.asarray(block.counter)
+            n -= int(counter[-1]) - (int(counter[0]) - 1 if last is None else last)
+            last = int(counter[-1])
+
+    def dwell(self, index: int, target_deg: float, settle_s: float = 0.0,
+              after: int | None = None) -> DwellData:
         """Collect dwell_s·rate IMU samples right after settling (in chunks, reporting live
         statistics), then dwell_s·rate accelerometer samples: those after its NMT start at READY,
         less the first settle_s·rate of them (:meth:`_accel_skip_s`: up to the settle's end).
 
         The two dwells need not coincide: both lie inside the same rest (the accelerometer was
-        started at or after READY and skips at least to the end of the IMU's settle; the next move
-        is commanded only after both dwells have arrived), so a CAN link that lags, or loses frames,
-        shifts nothing.
+        started at or after READY and skips at least to the end of the IMU's settle; it is stopped
+        before the next move is commanded, and only what it sent before its stop is read), so a CAN
+        link that lags, or loses frames, shifts nothing.
 
         What the host does between the IMU's last dwell sample and the next move command lets device
-        time run on unseen, so the table angle is read during the dwell and the IMU's checks are made
-        while the tilt sensor's samples are still on their way."""
+        time run on unseen. So the table angle is read during the dwell, and the move to plan
+        position `after` is commanded as soon as the IMU's dwell is in when :meth:`_may_move_on`
+        (the tilt sensor proves its stops and is at most its allowed shortfall behind): the checks,
+        and the tilt sensor's last samples, come while the table turns, its dwell being what it sent
+        before its stop. A dwell found bad is then measured again after a move back."""
         cfg = self.run_cfg
         rate = float(self.imu.rate_hz)
         n_total = max(2, int(round(cfg.dwell_s * rate)))
@@ -547,12 +584,16 @@ class Sequencer:
             if self._rest_angle_deg is None:
                 self._rest_angle_deg = float(self.turntable.angle_deg())  # at rest: any time in the dwell
         self._check_stop()
-        imu_verdict = self._imu_verdict(blocks, windows)  # while the tilt sensor's dwell arrives
+        angle_deg = self._rest_angle_deg
         skip = int(np.ceil(settle_s * self.accel_rate_hz))
-        if skip > 0:
-            self._read_accel(skip)
         n_accel = max(2, int(round(cfg.dwell_s * self.accel_rate_hz)))
-        return DwellData(blocks, self._read_accel(n_accel), imu_verdict, self._rest_angle_deg)
+        moved_on = after is not None and self._may_move_on(skip + n_accel, n_accel)
+        if moved_on:
+            self._command_move(after, self._plan[after])
+        imu_verdict = self._imu_verdict(blocks, windows)  # while the tilt sensor's dwell arrives
+        self._skip_accel(skip, until_stopped=moved_on)
+        return DwellData(blocks, self._read_accel(n_accel, until_stopped=moved_on), imu_verdict, angle_deg,
+                         n_accel, moved_on)
 
     # -- the sequence ------------------------------------------------------------------------
     def run(self) -> list[PositionMeans]:
@@ -623,7 +664,7 @@ class Sequencer:
         reasons: list[str] = []
         for attempt in range(1, self.limits.max_attempts + 1):
             try:
-                settle, data, counts = self._attempt(i, target)
+                settle, data, counts = self._attempt(i, target, after)
             except StageFault:
                 raise  # _move already retried once
             except DeviceError as exc:
@@ -633,15 +674,17 @@ class Sequencer:
                 if exc.device == "imu" and self._reconnect_imu(i, exc):
                     reason = f"imu link lost and reconnected: {exc}"
             else:
-                problems = combine_verdicts(data.imu_verdict, self._accel_verdict(data.accel_block))
+                problems = combine_verdicts(data.imu_verdict,
+                                            self._accel_verdict(data.accel_block, data.accel_expected))
                 if not problems:
                     self._check_stop()
                     try:
-                        if after is not None:
+                        if after is not None and not data.moved_on:
                             self._command_move(after, self._plan[after])
                     finally:  # recorded even if the next move could not be commanded
                         self._flush_logs()
-                        extra = {"attempt": attempt, "heartbeats": counts[0], "emcy": counts[1]}
+                        extra = {"attempt": attempt, "heartbeats": counts[0], "emcy": counts[1],
+                                 "early_move": data.moved_on}
                         means = self._record(i, target, data.table_angle_deg, settle, data.blocks,
                                              data.accel_block, extra)
                     self.on_progress(Progress(i + 1, n, "measured", target, dwell_done_s=self.run_cfg.dwell_s,
@@ -654,6 +697,8 @@ class Sequencer:
             self._event({"event": "remeasure", "index": i, "attempt": attempt, "reason": reason})
             self._check_stop()
         self._flush_logs()
+        if self._commanded is not None and self._commanded[0] != target:
+            self._finish_move_on()  # the table at rest when the run ends
         raise RunFailed(
             f"position {i + 1} of {n} ({target:g}°) failed {self.limits.max_attempts} times — "
             f"last: {reasons[-1]}",
@@ -678,11 +723,14 @@ class Sequencer:
         self._commanded = (target, travel_deg)
         return travel_deg
 
-    def _attempt(self, i: int, target: float) -> tuple[SettleResult, DwellData, tuple[int, int]]:
+    def _attempt(self, i: int, target: float, after: int | None = None
+                 ) -> tuple[SettleResult, DwellData, tuple[int, int]]:
         """One measurement of a position: move (the tilt sensor paused; commanded already when the
-        last position's dwell was kept), settle, dwell; the tilt sensor's status and fault reports
-        during the dwell."""
+        last position's dwell was kept), settle, dwell (commanding the move to `after` when it may);
+        the tilt sensor's status and fault reports during the dwell."""
         n = len(self._plan)
+        if self._commanded is not None and self._commanded[0] != target:
+            self._finish_move_on()
         commanded = self._commanded is not None and self._commanded[0] == target
         travel_deg = self._commanded[1] if commanded else self._command_move(i, target)
         self._commanded = None
@@ -694,12 +742,21 @@ class Sequencer:
         settle = self.settle(expect_motion=travel_deg >= MIN_VISIBLE_MOVE_DEG, move_deg=travel_deg)
         self._homing_travel_deg = 0.0
         hb0, emcy0 = self.accel.counts()
-        data = self.dwell(i, target, self._accel_skip_s(settle))
+        data = self.dwell(i, target, self._accel_skip_s(settle), after)
         hb1, emcy1 = self.accel.counts()
         return settle, data, (hb1 - hb0, emcy1 - emcy0)
 
+    def _finish_move_on(self) -> None:
+        """A dwell to be measured again after the next move was commanded (:meth:`dwell`): that move
+        ends (READY) first, so that the move back starts from a table at rest."""
+        assert self._commanded is not None
+        target, _ = self._commanded
+        self._commanded = None
+        self._move(target, commanded=True)
+        self._rest_angle_deg = None
+
     def _note_accel_start(self) -> None:
-        self._accel_started_at = self.imu.newest_index()
+        self._accel_started_at = self.imu.caught_up_index(CAUGHT_UP_WAIT_S)
 
     def _accel_skip_s(self, settle: SettleResult) -> float:
         """Device seconds of the tilt sensor's samples to drop after its start, so that its dwell
@@ -731,9 +788,10 @@ class Sequencer:
         return imu_dwell_verdict(blocks, imu_rate_hz=float(self.imu.rate_hz), gyro_axes=self._gyro_axes(),
                                  stalls=self.imu.stall_indices, limits=self.limits.dwell, windows=windows)
 
-    def _accel_verdict(self, accel_block: AccelBlock) -> DwellVerdict:
+    def _accel_verdict(self, accel_block: AccelBlock, expected: int | None = None) -> DwellVerdict:
         """The tilt sensor's share of why a dwell must be measured again (estimators.dwell)."""
-        return accel_dwell_verdict(accel_block, accel_rate_hz=self.accel_rate_hz, limits=self.limits.dwell)
+        return accel_dwell_verdict(accel_block, accel_rate_hz=self.accel_rate_hz, limits=self.limits.dwell,
+                                   expected=expected)
 
     def log_stats(self) -> None:
         """The devices' counters for this session (bad CRC, resyncs, lost, EMCY…) to the events log."""
@@ -799,6 +857,7 @@ class Sequencer:
                 },
                 "attempt": int((extra or {}).get("attempt", 1)),
                 "before_move_s": before_move_s,
+                "early_move": bool((extra or {}).get("early_move", False)),
                 "gyro_dph": means.gyro_dph,
                 "accel_g": means.accel_g,
             }

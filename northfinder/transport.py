@@ -130,6 +130,8 @@ class SerialTransport:
         self.url = url
         self.device = device
         self.timeout_s = timeout_s
+        self.drained = False
+        """Whether the last read_available found nothing waiting (all the port had sent was read)."""
         self._serial = open_serial(url, device=device, baudrate=baudrate, timeout_s=timeout_s,
                                    **serial_kwargs)
         self._raw_log, self._own_raw = _open_log(raw_log, "wb")  # one session per raw log: replayable
@@ -189,9 +191,11 @@ class SerialTransport:
 
     def read_available(self, max_bytes: int = 1 << 16) -> bytes:
         """Whatever is waiting; if nothing is, wait up to the timeout for the first byte and then
-        take everything that came with it (one log entry, few small chunks)."""
+        take everything that came with it (one log entry, few small chunks). `drained` then says
+        whether nothing was waiting: every byte that came before had been read."""
         try:
             waiting = self._serial.in_waiting
+            self.drained = not waiting
             if waiting:
                 data = self._serial.read(min(waiting, max_bytes))
             else:
@@ -286,6 +290,10 @@ class StampedTransport:
 
     def write(self, data: bytes) -> None:
         self._inner.write(data)
+
+    @property
+    def drained(self) -> bool:
+        return bool(getattr(self._inner, "drained", False))
 
     def read_available(self, max_bytes: int = 1 << 16) -> bytes:
         data = self._inner.read_available(max_bytes)

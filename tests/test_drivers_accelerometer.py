@@ -248,3 +248,42 @@ def test_a_stopped_report_after_the_stop_marks_everything_sent_before_it(channel
         _send(node, 0x700 + node_id, bytes([0x04]))
         assert acc.wait_stopped_report(3.0) is True
         assert acc.discard_pending() == 3
+
+
+def test_a_read_until_stopped_ends_at_the_stopped_report_with_all_sent_before_it(channel, node):
+    """read(n, until_stopped=True) after stop_node: it returns the samples the node sent before its
+    "stopped" heartbeat — fewer than asked — only once that heartbeat is here (bus order), never on
+    a stale report from before the stop or an operational one; with all n pending it returns at
+    once; after start_node a report of the earlier stop ends nothing (a plain wait for n)."""
+    codec = CanCodec()
+    node_id = 0x10
+
+    def sample(c: int) -> None:
+        _send(node, *codec.encode("TPDO1", {"accel_x": c, "accel_y": 0}))
+        _send(node, *codec.encode("TPDO2", {"accel_z": 0, "temperature": 0, "counter": c, "status": 7}))
+
+    with Accelerometer("virtual", channel) as acc:
+        _send(node, 0x700 + node_id, bytes([0x04]))  # stale: from before the stop command
+        _wait(lambda: acc.stats.heartbeats == 1)
+        for c in range(5):
+            sample(c)
+        _wait(lambda: acc.stats.pairs == 5)
+        acc.stop_node()
+        with pytest.raises(DeviceError, match="only 5 of 8 samples"):
+            acc.read(8, timeout_s=0.2, until_stopped=True)  # the stale report proves nothing
+        _send(node, 0x700 + node_id, bytes([0x05]))
+        _wait(lambda: acc.stats.heartbeats == 2)
+        with pytest.raises(DeviceError, match="only 5 of 8 samples"):
+            acc.read(8, timeout_s=0.2, until_stopped=True)
+        sample(5)  # sent before the stop, delivered late: ahead of the report on the bus
+        _send(node, 0x700 + node_id, bytes([0x04]))
+        block = acc.read(8, timeout_s=3.0, until_stopped=True)
+        assert block.counter.tolist() == list(range(6))
+        assert acc.read(8, timeout_s=3.0, until_stopped=True).counter.size == 0  # nothing more came
+        for c in range(6, 9):
+            sample(c)
+        _wait(lambda: acc.stats.pairs == 9)
+        assert acc.read(2, timeout_s=3.0, until_stopped=True).counter.tolist() == [6, 7]
+        acc.start_node()
+        with pytest.raises(DeviceError, match="only 1 of 4 samples"):
+            acc.read(4, timeout_s=0.2, until_stopped=True)  # started again: the old report ends nothing

@@ -224,3 +224,27 @@ def test_unplugged_device_is_one_clear_error():
         if master is not None:
             os.close(master)
         os.close(slave)
+
+
+def test_caught_up_index_is_the_newest_index_when_the_reader_had_read_all_the_unit_sent(pty_pair):
+    """caught_up_index: the newest sample index decoded at the reader's next moment with nothing
+    waiting — a lower bound of the unit's clock taken after the call (never an older one), behind
+    what came after it; with no such moment within its time-out, the newest index."""
+    master, path = pty_pair
+    frames, _ = _frames(400)
+    with Imu(path, wait_for_data=False) as imu:
+        write_all(master, b"".join(frames[:100]))
+        _wait_bytes(imu, 100 * F)
+        assert imu.newest_index() == 99
+        assert imu.caught_up_index(0.1) == 99  # nothing more comes: the newest
+        got: list[int | None] = []
+        waiting = threading.Thread(target=lambda: got.append(imu.caught_up_index(5.0)))
+        waiting.start()
+        sent = 100
+        while waiting.is_alive() and sent < 400:
+            write_all(master, b"".join(frames[sent:sent + 10]))
+            sent += 10
+            _wait_bytes(imu, sent * F)
+        waiting.join(5.0)
+        assert got and got[0] is not None
+        assert 99 <= got[0] < imu.newest_index() == sent - 1

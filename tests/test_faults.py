@@ -607,3 +607,26 @@ def test_stage_that_stalls_again_on_the_retry_is_stopped_and_the_run_ends_with_i
     lines = (run_dir / "turntable.log").read_text()
     assert lines.count("> 1MM1") == 1 and "> 1ST" in lines
     _check_replay_identical(run_dir)
+
+
+def test_a_tilt_sensor_that_starts_late_is_waited_for_and_one_close_behind_is_cut_by_the_early_move(tmp_path):
+    """accel-start-lag: the node sends its first sample LAG s after each NMT start, so its dwell
+    ends ~LAG s after the IMU's. 2 s behind on a 10 s dwell (20 % still to come when the IMU's dwell
+    is in, more than the 10 % a dwell may lose): every move waits for both dwells, each whole. 0.3 s
+    behind (3 %): every move but the last is commanded as soon as the IMU's dwell is in, and the
+    node's dwell ends at its stop — cut when it was still behind, never below 90 %. Neither run
+    measures a dwell again."""
+    expected = int(10.0 * ACCEL_RATE_HZ)
+    for lag_s, early in ((2.0, False), (0.3, True)):
+        run_dir = tmp_path / f"lag{lag_s}"
+        result = _in_process(run_dir, [f"accel-start-lag={lag_s}"], positions=3, dwell_s=10.0)
+        assert result["complete"] and result["positions_measured"] == 3
+        assert result["faults"]["remeasured"] == []
+        kept = _positions(run_dir)
+        assert [e["early_move"] for e in kept] == [early, early, False]  # the last: no next move
+        for e in kept:
+            got = e["accel"]["samples"] + e["accel"]["lost"]
+            if e["early_move"]:  # cut by the stop when the node was still behind: never below 90 %
+                assert 0.9 * expected <= got <= expected
+            else:
+                assert got == expected

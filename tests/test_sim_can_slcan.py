@@ -394,3 +394,42 @@ def test_no_client_no_fd_to_watch_and_a_vanished_client_closes_the_channel():
         adapter.close()
         internal.shutdown()
         peer.shutdown()
+
+
+def test_the_bench_loop_puts_what_the_node_sends_in_a_tick_on_the_wire_in_that_tick():
+    """firmware_sim's bench, built but not running: its client opens the slcan channel, the node is
+    started over NMT, and ONE pass of the loop's device order (every device's `advance(t)`) brings
+    the node's first samples onto the adapter's pty — the adapter comes after the node, as a real
+    adapter forwards a frame when it is sent (before it, every frame waited a tick: 0.6 device s
+    at 120×)."""
+    from firmware_sim.config import SimConfig
+    from firmware_sim.simulator import Simulator
+
+    sim = Simulator(SimConfig(seed=5))
+    sim._build()
+    try:
+        adapter = sim.can_adapter
+        port = serial.Serial(adapter.endpoint()["channel"], baudrate=115200, timeout=2.0)
+        try:
+            port.write(b"S6\rO\r")
+            _wait_readable(adapter)
+            adapter.on_readable(0.0)
+            assert _read_exactly(port, 2) == b"\r\r"
+            for device in sim.devices:  # power on: boot-up, pre-operational
+                device.advance(0.0)
+            port.reset_input_buffer()
+            port.write(b"t000201%02X\r" % NODE)  # NMT start node
+            _wait_readable(adapter)
+            adapter.on_readable(0.0)
+            assert _read_exactly(port, 2) == b"z\r"
+            for device in sim.devices:
+                device.advance(0.05)  # the node acts on the start at 50 ms
+            for device in sim.devices:
+                device.advance(0.1)  # 50 ms more: five samples at 100 Hz, sent in this pass
+            port.timeout = 0.5
+            lines = port.read_until(b"t%03X" % TPDO1)
+            assert lines.endswith(b"t%03X" % TPDO1), lines
+        finally:
+            port.close()
+    finally:
+        sim._close_all()

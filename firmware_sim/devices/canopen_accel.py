@@ -498,6 +498,7 @@ class AccelFaults:
     emcy: list[tuple[float, int]] = field(default_factory=list)  # accel-emcy=AT_S[:CODE]
     heartbeat_loss_at_s: float | None = None  # accel-heartbeat-loss=AT_S: no heartbeat from then
     sdo_silent_at_s: float | None = None  # accel-sdo-silent=AT_S: no SDO answer from then
+    start_lag_s: float = 0.0  # accel-start-lag=LAG_S: the first sample LAG_S after each NMT start
 
     @classmethod
     def from_spec(cls, faults: Any) -> AccelFaults:
@@ -533,6 +534,8 @@ class AccelFaults:
                 out.heartbeat_loss_at_s = float(value)
             elif name == "accel-sdo-silent":
                 out.sdo_silent_at_s = float(value)
+            elif name == "accel-start-lag":
+                out.start_lag_s = float(value)
         return out
 
 
@@ -698,6 +701,7 @@ class CanAccelNode(CanopenNode):
         self._emcy_index = 0
         self._closed = False
         self._t_now_s = 0.0
+        self._send_from_s: float | None = None  # accel-start-lag: no sample ends before this
 
     @property
     def heartbeat_period_s(self) -> float:
@@ -979,6 +983,13 @@ class CanAccelNode(CanopenNode):
         values = self._object_values(dv_meas, ug, temp_centi, status, n)
         if self.state != STATE_OPERATIONAL:
             return None
+        held = self._held_after_start(k0, n)
+        if held >= n:
+            return None
+        if held:  # the start lag: these are measured (the noise stream goes on) but not sent
+            k0, n = k0 + held, n - held
+            dv_meas, ug, status = dv_meas[held:], ug[held:], status[held:]
+            values = self._object_values(dv_meas, ug, temp_centi, status, n)
         self._counter = (self._counter + n) & 0xFF
         payloads = [encode_mapped(mapping_layout(self.od, pdo), values, n) for pdo in (0, 1)]
         keep = np.ones((n, 2), dtype=bool)
@@ -992,6 +1003,18 @@ class CanAccelNode(CanopenNode):
                 events.extend(self._tpdo_events(pdo, t_end, payloads[pdo], keep[:, pdo]))
         events.sort(key=lambda e: (e[0], e[1]))
         return events
+
+    def _held_after_start(self, k0: int, n: int) -> int:
+        """How many of samples k0…k0+n−1 end before the start lag after the last NMT start is over."""
+        if self._send_from_s is None:
+            return 0
+        first = math.ceil((self._send_from_s - self._grid_t0_s) / self.dt_s - 1.0 - 1e-9)
+        return int(min(max(first - k0, 0), n))
+
+    def _nmt_state_command(self, command: int, t_s: float) -> bool:
+        if command == NMT_START and self.state != STATE_OPERATIONAL and self.faults.start_lag_s > 0.0:
+            self._send_from_s = t_s + self.faults.start_lag_s
+        return super()._nmt_state_command(command, t_s)
 
     def _object_values(self, dv_meas: np.ndarray, ug: np.ndarray, temp_centi: int, status: np.ndarray,
                        n: int) -> dict[tuple[int, int], np.ndarray]:

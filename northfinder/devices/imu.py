@@ -190,6 +190,12 @@ class InertialStream(ABC):
         link's latency, never ahead."""
         return None
 
+    def caught_up_index(self, timeout_s: float) -> int | None:
+        """Like :meth:`newest_index`, taken when the reader has next read everything the unit sent
+        (at most `timeout_s` host seconds from now): a lower bound of the unit's clock that does
+        not lag by a backlog. A model that cannot tell: the newest index."""
+        return self.newest_index()
+
     def wait_decoded(self, n: int, timeout_s: float) -> bool | None:
         """Wait until `n` more samples have been decoded (read or not), at most `timeout_s` host
         seconds: True when they came, False on time-out; None when the model cannot tell (then

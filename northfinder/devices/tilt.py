@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from northfinder.errors import DeviceError
+
 ROLE = "accelerometer"
 STOPPED_REPORT_WAIT_S = 2.5
 """Host seconds to wait for the sensor's proof that it stopped (our node: a heartbeat reporting
@@ -58,12 +60,22 @@ class TiltSensor(ABC):
     rate_hz: float
     _silent_at: int | None = None
     """Status-report count when the last wait for the stop's proof timed out (None: it did not)."""
+    stop_reported: bool = False
+    """The last :meth:`resume` found the sensor's report that it had stopped: its stops are proven
+    in device order, so a dwell may be read `until_stopped` after the next move was commanded."""
 
     @abstractmethod
-    def read(self, n_samples: int, timeout_s: float | None = None) -> AccelBlock: ...
+    def read(self, n_samples: int, timeout_s: float | None = None, until_stopped: bool = False) -> AccelBlock:
+        """The next `n_samples` samples (DeviceError after `timeout_s`). `until_stopped`: fewer when
+        the sensor's report that it stopped (after the last stop_stream) comes first — then the block
+        holds every sample it sent before stopping (a model without such a report waits for all)."""
 
     @abstractmethod
     def discard_pending(self) -> int: ...
+
+    @abstractmethod
+    def pending_samples(self) -> int:
+        """Samples received and not read yet."""
 
     @abstractmethod
     def start_stream(self) -> None:
@@ -127,6 +139,7 @@ class TiltSensor(ABC):
         host time, and the events log says so."""
         reports = self.status_reports()
         waited = self._silent_at != reports and self.wait_stopped_report(STOPPED_REPORT_WAIT_S)
+        self.stop_reported = waited
         if waited:
             self._silent_at = None
             self.discard_pending()
@@ -150,6 +163,25 @@ class TiltSensor(ABC):
         if before_start is not None:
             before_start()
         self.start_stream()
+
+    def read_until_stopped(self, n: int, log_event: Callable[[dict[str, Any]], None],
+                           quiet_s: float = 0.1) -> AccelBlock:
+        """Up to `n` samples, after a stop: all the sensor sent before it, once its report that it
+        stopped is here (device order). Without that report within STOPPED_REPORT_WAIT_S: those that
+        came until nothing more arrived for quiet_s — host time, and the events log says so."""
+        try:
+            return self.read(n, timeout_s=STOPPED_REPORT_WAIT_S, until_stopped=True)
+        except DeviceError:
+            pass
+        log_event({"event": "accel_drain", "by": "host quiet",
+                   "why": "no heartbeat reported the node stopped after its dwell"})
+        last = -1
+        while (now := self.pending_samples()) != last and now < n:
+            last = now
+            time.sleep(quiet_s)
+        if now == 0:
+            return AccelBlock(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.uint8), 0)
+        return self.read(min(n, now), timeout_s=quiet_s)
 
     def read_samples(self, n: int, read_timeout_s: float) -> AccelBlock:
         """`read` bounded by the samples' own duration (twice) plus `read_timeout_s` host seconds."""

@@ -66,6 +66,8 @@ class StreamReader:
         self._cond = threading.Condition()
         self._error: BaseException | None = None
         """The reader thread's error, handed to the next waiting call."""
+        self._caught_up: tuple[int, int | None] = (0, None)
+        """(times the reader found the link drained, the newest sample index decoded then)."""
 
     def _on_bytes(self, data: bytes) -> None:
         """New bytes from the port, called with `_cond` held."""
@@ -87,6 +89,7 @@ class StreamReader:
     def _read_loop(self) -> None:
         stop = self._stop  # a reconnect replaces the event; this thread answers to its own
         while not stop.is_set():
+            newest = getattr(self, "_newest_index", None)  # only this thread changes it
             try:
                 data = self._t.read_available()
             except BaseException as exc:  # noqa: BLE001 - handed to the reading thread
@@ -97,6 +100,8 @@ class StreamReader:
             if not data:
                 continue
             with self._cond:
+                if getattr(self._t, "drained", False):
+                    self._caught_up = (self._caught_up[0] + 1, newest)
                 self._on_bytes(data)
                 self._cond.notify_all()
 
@@ -157,6 +162,18 @@ class SampleQueue:
     def newest_index(self) -> int | None:
         """Device index of the newest sample decoded (read or not); None before the first."""
         with self._cond:
+            return self._newest_index
+
+    def caught_up_index(self, timeout_s: float) -> int | None:
+        """The newest sample index decoded when the reader next finds the link drained (every byte
+        the device had sent read and decoded): at that host moment the device clock is at least
+        there, and — unlike :meth:`newest_index` behind a backlog — not far ahead of it. After
+        `timeout_s` host seconds without that (a link that never drains), the newest index."""
+        with self._cond:
+            seen = self._caught_up[0]
+            if self._cond.wait_for(lambda: self._caught_up[0] > seen or self._error is not None, timeout_s) \
+                    and self._error is None and self._caught_up[1] is not None:
+                return self._caught_up[1]
             return self._newest_index
 
     def wait_decoded(self, n: int, timeout_s: float) -> bool:

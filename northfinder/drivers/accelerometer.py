@@ -268,6 +268,8 @@ class Accelerometer:
         self._stopped_reports = 0
         """Heartbeats that reported NMT state stopped (0x04), counted in bus order."""
         self._stop_mark = 0
+        self._stopping = False
+        """Stopped by stop_node, not started again since."""
         self._logger: can.Listener | None = None
         if log_path is not None:
             Path(log_path).parent.mkdir(parents=True, exist_ok=True)
@@ -355,13 +357,21 @@ class Accelerometer:
 
     def start_node(self) -> None:
         """NMT start: the node becomes operational and sends its TPDOs at its rate."""
+        with self._lock:
+            self._stopping = False
         self._nmt(0x01)
 
     def stop_node(self) -> None:
         """NMT stop: the node stops sending data (heartbeats go on)."""
         with self._lock:
             self._stop_mark = self._stopped_reports
+            self._stopping = True
         self._nmt(0x02)
+
+    def _stop_proven(self) -> bool:
+        """With `_lock` held: a heartbeat since the last stop_node (no start since) reported stopped —
+        every TPDO the node sent before it stopped is here (bus order)."""
+        return self._stopping and self._stopped_reports > self._stop_mark
 
     def wait_stopped_report(self, timeout_s: float) -> bool:
         """Wait until a heartbeat received after the last :meth:`stop_node` reports state stopped.
@@ -557,14 +567,15 @@ class Accelerometer:
         with self._lock:
             return self._decoder.heartbeat_state
 
-    def read(self, n_samples: int, timeout_s: float | None = None) -> AccelBlock:
-        """The next `n_samples` paired samples, blocking; DeviceError naming the channel on timeout."""
+    def read(self, n_samples: int, timeout_s: float | None = None, until_stopped: bool = False) -> AccelBlock:
+        """The next `n_samples` paired samples, blocking; DeviceError naming the channel on timeout.
+        `until_stopped`: fewer once the node has proven its stop (:meth:`_stop_proven`) — all it sent."""
         n, wait_s = read_bounds(n_samples, self.rate_hz, self.timeout_s, timeout_s)
         with self._lock:
             self._want = n  # the bus thread wakes this one when n are there, not at every sample
             try:
                 self._wait_locked(
-                    lambda: self._decoder.pending() >= n,
+                    lambda: self._decoder.pending() >= n or until_stopped and self._stop_proven(),
                     wait_s,
                     lambda: f"only {self._decoder.pending()} of {n} samples from node 0x{self.node_id:02X} "
                     f"within {wait_s:g} s on {self.port} — is the node operational (start_node) and the "
@@ -572,8 +583,13 @@ class Accelerometer:
                 )
             finally:
                 self._want = 1
-            raw = self._decoder.drain(n)
+            raw = self._decoder.drain(min(n, self._decoder.pending()))
         return samples_to_block(raw, self._decoder.layout)
+
+    def pending_samples(self) -> int:
+        """Paired samples received and not read yet."""
+        with self._lock:
+            return self._decoder.pending()
 
     def discard_pending(self) -> int:
         """Drop paired samples not read yet; returns how many."""

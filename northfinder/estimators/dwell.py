@@ -23,13 +23,16 @@ ACCEL_QUANTUM_G = 1e-6
 class DwellLimits:
     """When a dwell is measured again: an IMU gap longer than `imu_max_gap_s` (device time), more
     than `max_lost_fraction` of the IMU samples lost (or flagged not valid on a gyro axis), more than
-    `accel_max_lost_fraction` of the accelerometer's lost, or a disturbance in windows of
+    `accel_max_lost_fraction` of the accelerometer's lost, fewer than `accel_min_fraction` of its
+    dwell read before it stopped for the next move, or a disturbance in windows of
     `disturbance_window_s` (twice that for the accelerometer)."""
 
     imu_max_gap_s: float = 0.1
     max_lost_fraction: float = 0.05
     accel_max_lost_fraction: float = 0.2
     disturbance_window_s: float = 0.1
+    accel_min_fraction: float = 0.9
+    """A tilt sensor stopped for the next move before this fraction of its dwell had come: again."""
 
 
 def disturbance_z(samples: np.ndarray, window: int, floor: float = 0.0) -> tuple[float, int]:
@@ -198,11 +201,15 @@ def imu_dwell_verdict(blocks: list[Any], *, imu_rate_hz: float, gyro_axes: str, 
                              f"{z:.1f} σ off the dwell's level"])
 
 
-def accel_dwell_verdict(accel_block: Any, *, accel_rate_hz: float, limits: DwellLimits) -> DwellVerdict:
-    """The tilt sensor's share of why a dwell must be measured again (its AccelBlock): too many
-    samples lost, or a disturbance."""
+def accel_dwell_verdict(accel_block: Any, *, accel_rate_hz: float, limits: DwellLimits,
+                        expected: int | None = None) -> DwellVerdict:
+    """The tilt sensor's share of why a dwell must be measured again (its AccelBlock): fewer samples
+    than `limits.accel_min_fraction` of the `expected`, too many lost, or a disturbance."""
     counter = np.asarray(accel_block.counter)
     a_lost = int(accel_block.lost_samples)
+    if expected is not None and counter.size + a_lost < limits.accel_min_fraction * expected:
+        return DwellVerdict([f"accelerometer stopped for the next move after {counter.size + a_lost} of its "
+                             f"{expected} dwell samples (too few)"], [])
     if a_lost > limits.accel_max_lost_fraction * max(counter.size, 1):
         return DwellVerdict([f"accelerometer lost {a_lost} of {a_lost + counter.size} samples (too few)"], [])
     wa = max(5, int(round(2.0 * limits.disturbance_window_s * accel_rate_hz)))

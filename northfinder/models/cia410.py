@@ -123,18 +123,23 @@ class Cia410Inclinometer(Accelerometer, TiltSensor):
                 return
         super()._on_frame(msg)
 
-    def read(self, n_samples: int, timeout_s: float | None = None) -> AccelBlock:
+    def read(self, n_samples: int, timeout_s: float | None = None, until_stopped: bool = False) -> AccelBlock:
         n, wait_s = read_bounds(n_samples, self.rate_hz, self.timeout_s, timeout_s)
         with self._lock:
-            self._wait_locked(lambda: self._slopes.pending() >= n, wait_s,
+            self._wait_locked(lambda: self._slopes.pending() >= n or until_stopped and self._stop_proven(),
+                              wait_s,
                               lambda: f"only {self._slopes.pending()} of {n} slopes from node "
                               f"0x{self.node_id:02X} within {wait_s:g} s on {self.port} — is the node "
                               "operational and its TPDO1 event timer set?")
-            counter, counts = self._slopes.drain(n)
+            counter, counts = self._slopes.drain(min(n, self._slopes.pending()))
         block = slopes_to_block(counter, counts, self.resolution_mdeg)
         with self._lock:
             self._slopes.stats.saturated += int(np.count_nonzero(block.status))
         return block
+
+    def pending_samples(self) -> int:
+        with self._lock:
+            return self._slopes.pending()
 
     def discard_pending(self) -> int:
         with self._lock:
