@@ -476,25 +476,16 @@ class Sequencer:
         move_s = self._move_duration_s(self._move_deg if move_deg is None else move_deg)
         max_windows = max(1, int(np.ceil((cfg.settle_max_s + move_s) * rate / n_win)))
         min_windows = int(np.ceil(cfg.settle_min_s * rate / n_win))
+        ready_index = self.imu.caught_up_index(CAUGHT_UP_WAIT_S)  # the move is behind it (READY)
+        if not expect_motion and ready_index is not None and self._last_imu_index is not None:
+            if ready_index > self._last_imu_index:  # a backlog from before the command: no settle
+                self._read_imu(ready_index - self._last_imu_index)
         self._align_to_grid(n_win)
         means_dph: list[float] = []
         onset: int | None = None
         if expect_motion:
-            for _ in range(int(np.ceil(2.0 * move_s * rate / n_win))):
-                self._check_stop()
-                block = self._read_imu(n_win)
-                z = np.asarray(block.gyro_rad_s)[:, 2] / DPH
-                if abs(float(np.nanmean(z))) > cfg.settle_rest_dph:
-                    means_dph.append(float(np.nanmean(z)))
-                    onset = int(block.sample_index[0])
-                    break
-            else:
-                raise DeviceError(
-                    "imu",
-                    self.imu.port,
-                    "the gyro z axis showed no table motion during the move — is the IMU on the table, "
-                    "its z along the table axis?",
-                )
+            onset, slew_dph = self._find_slew(n_win, move_s, ready_index)
+            means_dph.append(slew_dph)
         windows: list[np.ndarray] = []
         for k in range(1, max_windows + 1):
             self._check_stop()
@@ -507,6 +498,29 @@ class Sequencer:
                 return SettleResult(k * n_win / rate + margin_s, True, k, rest_s, onset)
         rest_s = after_motion_s(means_dph, n_win / rate, 0.0) if expect_motion else None
         return SettleResult(max_windows * n_win / rate, False, max_windows, rest_s, onset)
+
+    def _find_slew(self, n_win: int, move_s: float, ready_index: int | None) -> tuple[int, float]:
+        """Read windows until the gyro z shows the table turning: (first index of that window, its
+        mean [°/h]). Given up after twice the move's bound — counted from the window past
+        `ready_index` (the IMU index when the reader had read all sent after READY) when the reader
+        was behind: the slew lies before READY, whatever backlog came first."""
+        rate = float(self.imu.rate_hz)
+        n_max = int(np.ceil(2.0 * move_s * rate / n_win))
+        k = 0
+        while True:
+            self._check_stop()
+            block = self._read_imu(n_win)
+            z = np.asarray(block.gyro_rad_s)[:, 2] / DPH
+            if abs(float(np.nanmean(z))) > self.run_cfg.settle_rest_dph:
+                return int(block.sample_index[0]), float(np.nanmean(z))
+            k += 1
+            if k >= n_max and (ready_index is None or int(block.sample_index[-1]) > ready_index):
+                raise DeviceError(
+                    "imu",
+                    self.imu.port,
+                    "the gyro z axis showed no table motion during the move — is the IMU on the table, "
+                    "its z along the table axis?",
+                )
 
     def _settle_margin(self, rate: float) -> float:
         """Drop settle_margin_s of samples after the settle criterion; returns that time [s]."""

@@ -496,7 +496,8 @@ def test_find_follows_a_swapped_mapping_and_the_nodes_own_rate(tmp_path):
         assert cfg.validate().accelerometer.rate_hz == 0.0  # nothing about the rate on our side
         result = measure(cfg, RunDir(run_dir), settings=settings, report=False,)
     assert result["complete"]
-    assert all(p["accel_samples"] == int(DWELL_S * rate_hz) for p in result["positions"])
+    n = int(DWELL_S * rate_hz)  # the node's rate; an early move leaves ≥ 90 % (accel_min_fraction)
+    assert all(0.9 * n <= p["accel_samples"] + p["accel_lost_samples"] <= n for p in result["positions"])
     limit = _noise_limit_deg(truth, result["duration_device_s"])
     assert abs(result["error_deg"]) < 3.0 * limit, (result["error_deg"], limit)
     acc = ACCEL_PRESETS[truth["grade"]]

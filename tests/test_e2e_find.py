@@ -98,7 +98,8 @@ def _check_accuracy(result: dict, truth: dict, plan: str = "positions+motion",
     assert result["complete"] and result["positions_measured"] == positions
     for p in result["positions"]:
         assert p["samples"] == int(DWELL_S * 1000)
-        assert p["accel_samples"] == int(DWELL_S * ACCEL_RATE_HZ)
+        n = int(DWELL_S * ACCEL_RATE_HZ)  # a dwell cut by an early move keeps ≥ 90 % (accel_min_fraction)
+        assert 0.9 * n <= p["accel_samples"] + p["accel_lost_samples"] <= n
         assert p["accel_lost_samples"] <= 0.1 * DWELL_S * ACCEL_RATE_HZ  # a loaded host may drop a few
     assert result["truth"]["heading_deg"] == pytest.approx(truth["heading_deg"] % 360.0)
     # the dwells alone (plan "positions") against the limit of the dwell time; every sample (plan
