@@ -194,6 +194,8 @@ class SerialTransport:
         take everything that came with it (one log entry, few small chunks). `drained` then says
         whether nothing was waiting: every byte that came before had been read."""
         try:
+            if type(self._serial).__module__ == "serial.urlhandler.protocol_socket":  # its in_waiting: 0 or 1
+                return self._logged(self._read_socket(self._serial._socket, max_bytes))
             waiting = self._serial.in_waiting
             self.drained = not waiting
             if waiting:
@@ -206,8 +208,27 @@ class SerialTransport:
                         data += self._serial.read(min(more, max_bytes - 1))
         except (serial.SerialException, OSError, TypeError) as exc:
             raise self._wrap(exc) from None
+        return self._logged(data)
+
+    def _logged(self, data: bytes) -> bytes:
         self.bytes_read += len(data)
         self._log("<", data)
+        return data
+
+    def _read_socket(self, sock: Any, max_bytes: int) -> bytes:
+        """read_available on pyserial's socket:// (whose in_waiting says 1 for any number of bytes
+        waiting, so the generic path read a stream one byte per call): one recv of all that is
+        there, after waiting up to the timeout for the first."""
+        ready, _, _ = select.select([sock], [], [], 0)
+        self.drained = not ready
+        if not ready and not select.select([sock], [], [], self.timeout_s)[0]:
+            return b""
+        try:
+            data = sock.recv(max_bytes)
+        except BlockingIOError:
+            return b""
+        if not data:
+            raise serial.SerialException("socket disconnected")
         return data
 
     def read_until(self, terminator: bytes = b"\r\n", size: int | None = 256) -> bytes:

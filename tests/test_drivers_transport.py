@@ -6,6 +6,7 @@ import os
 import socket
 import threading
 
+import numpy as np
 import pytest
 
 from northfinder.drivers.turntable import Turntable
@@ -82,3 +83,46 @@ def test_socket_url_refused_is_one_clear_line():
 def test_empty_port_is_a_user_error():
     with pytest.raises(DeviceError, match="no port given"):
         SerialTransport("", device="imu", baudrate=921600)
+
+
+def test_a_stream_over_socket_url_is_read_in_chunks_not_bytes(monkeypatch):
+    """pyserial's socket:// says 1 byte waiting whatever is there: read_available takes all that is
+    there in one call (the generic path read a KVH stream one byte per call), and the IMU driver
+    decodes every frame sent through a local server."""
+    from northfinder.codecs import kvh
+    from northfinder.drivers.imu import Imu
+
+    n = 3000
+    data = kvh.encode_frames(np.zeros((n, 3)), np.tile([0.0, 0.0, 1.0], (n, 1)), np.full(n, 0x77),
+                             np.arange(n), np.full(n, 25))
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    port = server.getsockname()[1]
+    calls = []
+    read_available = SerialTransport.read_available
+
+    def counted(self, *args, **kwargs):
+        out = read_available(self, *args, **kwargs)
+        calls.append(len(out))
+        return out
+
+    monkeypatch.setattr(SerialTransport, "read_available", counted)
+
+    def serve():
+        conn, _ = server.accept()
+        with conn:
+            conn.sendall(data)
+            conn.recv(1)  # until the client closes
+
+    t = threading.Thread(target=serve)
+    t.start()
+    try:
+        with Imu(f"socket://127.0.0.1:{port}", wait_for_data=False) as imu:
+            block = imu.read(n, timeout_s=10.0)
+    finally:
+        t.join()
+        server.close()
+    assert block.sample_index.tolist() == list(range(n))
+    assert sum(calls) == len(data)
+    assert sum(1 for c in calls if c) < 200  # 108 kB: chunks of kilobytes, not 108 000 reads
