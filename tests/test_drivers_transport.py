@@ -109,9 +109,12 @@ def test_a_stream_over_socket_url_is_read_in_chunks_not_bytes(monkeypatch):
 
     monkeypatch.setattr(SerialTransport, "read_available", counted)
 
+    opened = threading.Event()
+
     def serve():
         conn, _ = server.accept()
         with conn:
+            opened.wait(10.0)  # pyserial's socket:// drops what came before its open ended
             conn.sendall(data)
             conn.recv(1)  # until the client closes
 
@@ -119,6 +122,7 @@ def test_a_stream_over_socket_url_is_read_in_chunks_not_bytes(monkeypatch):
     t.start()
     try:
         with Imu(f"socket://127.0.0.1:{port}", wait_for_data=False) as imu:
+            opened.set()
             block = imu.read(n, timeout_s=10.0)
     finally:
         t.join()
