@@ -389,10 +389,10 @@ def test_kvh_silence_fault_leaves_a_gap_of_its_duration():
     assert sorted(set(jumps.tolist())) == [1, 501 % 128]
 
 
-def test_kvh_disconnect_fault_repoints_the_symlink_and_cleans_up():
+def test_kvh_disconnect_fault_removes_then_repoints_the_symlink_and_cleans_up():
     # the port vanishes 40 device s (2 s wall) after start: after the client has opened it, even on a
     # loaded host (at 1 device s, 0.05 s wall, a late open found the pty already replaced)
-    cfg = SimConfig(seed=2, time_scale=20.0, accel_enabled=False, faults=["imu-disconnect=40.0:0.5"])
+    cfg = SimConfig(seed=2, time_scale=20.0, accel_enabled=False, faults=["imu-disconnect=40.0:20"])
     sim = Simulator(cfg)
     ep = sim.start()
     link = ep["imu"]
@@ -404,6 +404,12 @@ def test_kvh_disconnect_fault_repoints_the_symlink_and_cleans_up():
             while time.monotonic() < deadline:
                 port.read(65536)
         port.close()
+        # while it is away the link is gone too, as a USB adapter's device node is: a link left on the
+        # closed pty would name whichever pty the kernel hands out next under its number
+        deadline = time.monotonic() + 0.5  # of the 1 s (wall) it is away
+        while os.path.lexists(link) and time.monotonic() < deadline:
+            time.sleep(0.002)
+        assert not os.path.lexists(link)
         # it comes back behind the same link (a new pty; the kernel may reuse the number)
         deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline:

@@ -763,6 +763,10 @@ class KvhImu(PtyDevice):
                 self._event("imu_disconnect", k_last=self.k_last_delivered, port=self.port.path)
             self._link = "down"
             self.port.close()
+            # the device node goes with the device, as a USB adapter's does: a link left pointing
+            # at the closed pty would, once the client lets go of it, name whatever pty the kernel
+            # hands out next under that number — another program's port
+            os.unlink(self._link_path)  # type: ignore[arg-type]
             if self.link is not None:
                 self.link.discard()
             self._down_until_s = at_s + down_s
