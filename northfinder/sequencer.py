@@ -506,21 +506,23 @@ class Sequencer:
         was behind: the slew lies before READY, whatever backlog came first."""
         rate = float(self.imu.rate_hz)
         n_max = int(np.ceil(2.0 * move_s * rate / n_win))
-        k = 0
+        k = lost = 0
+        first: int | None = None
         while True:
             self._check_stop()
             block = self._read_imu(n_win)
+            first = int(block.sample_index[0]) if first is None else first
             z = np.asarray(block.gyro_rad_s)[:, 2] / DPH
             if abs(float(np.nanmean(z))) > self.run_cfg.settle_rest_dph:
                 return int(block.sample_index[0]), float(np.nanmean(z))
             k += 1
             if k >= n_max and (ready_index is None or int(block.sample_index[-1]) > ready_index):
-                raise DeviceError(
-                    "imu",
-                    self.imu.port,
-                    "the gyro z axis showed no table motion during the move — is the IMU on the table, "
-                    "its z along the table axis?",
-                )
+                last = int(block.sample_index[-1])
+                lost = last - first + 1 - k * n_win
+                why = (f"the IMU stream lost {lost} of its samples meanwhile: the slew may be among them"
+                       if lost else "is the IMU on the table, its z along the table axis?")
+                raise DeviceError("imu", self.imu.port,
+                                  f"the gyro z axis showed no table motion during the move — {why}")
 
     def _settle_margin(self, rate: float) -> float:
         """Drop settle_margin_s of samples after the settle criterion; returns that time [s]."""
