@@ -585,27 +585,29 @@ class Sequencer:
         blocks = []
         windows = DisturbanceWindows(imu_window(rate, self.limits.dwell))
         running = RunningMeans()
-        got = 0
+        skip = int(np.ceil(settle_s * self.accel_rate_hz))
+        n_accel = max(2, int(round(cfg.dwell_s * self.accel_rate_hz)))
+        got, moved_on = 0, False
         while got < n_total:
             self._check_stop()
             block = self._read_imu(min(n_chunk, n_total - got))
+            got += len(block.sample_index)
+            if self._rest_angle_deg is None:
+                self._rest_angle_deg = float(self.turntable.angle_deg())  # at rest: any time in the dwell
+            if got >= n_total:  # the IMU's dwell is in: the move first, its bookkeeping after
+                angle_deg = self._rest_angle_deg
+                moved_on = after is not None and self._may_move_on(skip + n_accel, n_accel)
+                if moved_on:
+                    self._command_move(after, self._plan[after])
             blocks.append(block)
             g = np.asarray(block.gyro_rad_s) / DPH
             windows.add(np.hstack([g, np.asarray(block.accel_g)]))
-            got += g.shape[0]
             mean, std_of_mean = running.add(g)
-            self.on_progress(Progress(index + 1, len(self._plan), "dwell", target_deg,
-                                      dwell_done_s=got / rate, dwell_s=cfg.dwell_s, gyro_mean_dph=mean,
-                                      gyro_std_of_mean_dph=std_of_mean))
-            if self._rest_angle_deg is None:
-                self._rest_angle_deg = float(self.turntable.angle_deg())  # at rest: any time in the dwell
+            if not moved_on:  # (after the move command the view says "move")
+                self.on_progress(Progress(index + 1, len(self._plan), "dwell", target_deg,
+                                          dwell_done_s=got / rate, dwell_s=cfg.dwell_s, gyro_mean_dph=mean,
+                                          gyro_std_of_mean_dph=std_of_mean))
         self._check_stop()
-        angle_deg = self._rest_angle_deg
-        skip = int(np.ceil(settle_s * self.accel_rate_hz))
-        n_accel = max(2, int(round(cfg.dwell_s * self.accel_rate_hz)))
-        moved_on = after is not None and self._may_move_on(skip + n_accel, n_accel)
-        if moved_on:
-            self._command_move(after, self._plan[after])
         imu_verdict = self._imu_verdict(blocks, windows)  # while the tilt sensor's dwell arrives
         self._skip_accel(skip, until_stopped=moved_on)
         return DwellData(blocks, self._read_accel(n_accel, until_stopped=moved_on), imu_verdict, angle_deg,
