@@ -611,13 +611,14 @@ def test_stage_that_stalls_again_on_the_retry_is_stopped_and_the_run_ends_with_i
 
 def test_a_tilt_sensor_that_starts_late_is_waited_for_and_one_close_behind_is_cut_by_the_early_move(tmp_path):
     """accel-start-lag: the node sends its first sample LAG s after each NMT start, so its dwell
-    ends ~LAG s after the IMU's. 2 s behind on a 10 s dwell (20 % still to come when the IMU's dwell
-    is in, more than the 10 % a dwell may lose): every move waits for both dwells, each whole. 0.3 s
-    behind (3 %): every move but the last is commanded as soon as the IMU's dwell is in, and the
+    ends ~LAG s after the IMU's. 3 s behind on a 10 s dwell (at least 20 % still to come when the
+    IMU's dwell is in, whatever the 0–1 s the IMU's dwell waits for its grid: more than the 10 % a
+    dwell may lose): every move waits for both dwells, each whole. 0.2 s behind (2 %): every move
+    but the last is commanded as soon as the IMU's dwell is in, and the
     node's dwell ends at its stop — cut when it was still behind, never below 90 %. Neither run
     measures a dwell again."""
     expected = int(10.0 * ACCEL_RATE_HZ)
-    for lag_s, early in ((2.0, False), (0.3, True)):
+    for lag_s, early in ((3.0, False), (0.2, True)):
         run_dir = tmp_path / f"lag{lag_s}"
         result = _in_process(run_dir, [f"accel-start-lag={lag_s}"], positions=3, dwell_s=10.0)
         assert result["complete"] and result["positions_measured"] == 3
