@@ -506,8 +506,7 @@ class Sequencer:
         was behind: the slew lies before READY, whatever backlog came first."""
         rate = float(self.imu.rate_hz)
         n_max = int(np.ceil(2.0 * move_s * rate / n_win))
-        k = lost = 0
-        first: int | None = None
+        k, first = 0, None
         while True:
             self._check_stop()
             block = self._read_imu(n_win)
@@ -715,8 +714,7 @@ class Sequencer:
             self._event({"event": "remeasure", "index": i, "attempt": attempt, "reason": reason})
             self._check_stop()
         self._flush_logs()
-        if self._commanded is not None and self._commanded[0] != target:
-            self._finish_move_on()  # the table at rest when the run ends
+        self._finish_move_on(target)  # the table at rest when the run ends
         raise RunFailed(
             f"position {i + 1} of {n} ({target:g}°) failed {self.limits.max_attempts} times — "
             f"last: {reasons[-1]}",
@@ -747,8 +745,7 @@ class Sequencer:
         last position's dwell was kept), settle, dwell (commanding the move to `after` when it may);
         the tilt sensor's status and fault reports during the dwell."""
         n = len(self._plan)
-        if self._commanded is not None and self._commanded[0] != target:
-            self._finish_move_on()
+        self._finish_move_on(target)
         commanded = self._commanded is not None and self._commanded[0] == target
         travel_deg = self._commanded[1] if commanded else self._command_move(i, target)
         self._commanded = None
@@ -764,13 +761,15 @@ class Sequencer:
         hb1, emcy1 = self.accel.counts()
         return settle, data, (hb1 - hb0, emcy1 - emcy0)
 
-    def _finish_move_on(self) -> None:
-        """A dwell to be measured again after the next move was commanded (:meth:`dwell`): that move
-        ends (READY) first, so that the move back starts from a table at rest."""
-        assert self._commanded is not None
-        target, _ = self._commanded
+    def _finish_move_on(self, target: float) -> None:
+        """When a move to another position than `target` was commanded already (the next one, by a
+        dwell then measured again: :meth:`dwell`): let it end (READY), so that the move back to
+        `target` starts from a table at rest."""
+        if self._commanded is None or self._commanded[0] == target:
+            return
+        other, _ = self._commanded
         self._commanded = None
-        self._move(target, commanded=True)
+        self._move(other, commanded=True)
         self._rest_angle_deg = None
 
     def _note_accel_start(self) -> None:

@@ -187,7 +187,7 @@ class SimulatorProcess:
 
     @property
     def paced(self) -> bool:
-        return "--control-stdin" in self.settings.argv()
+        return bool(getattr(self.settings, "paced", False))
 
     def set_time_scale(self, scale: float) -> None:
         """Device time runs `scale`× the wall clock from now on (a paced simulator only)."""

@@ -62,6 +62,7 @@ from northfinder.codecs.canopen import AccelFrameDecoder, CanCodec  # noqa: E402
 from northfinder.drivers.imu import Imu  # noqa: E402
 from northfinder.estimators import montecarlo as mc  # noqa: E402
 from northfinder.estimators.heading import solve_batch  # noqa: E402
+from northfinder.runs.find_pace import paced_scales, time_scale_arg  # noqa: E402
 from northfinder.transport import ChunkedSlcanBus  # noqa: E402
 
 REAL_TIME_HZ = 1000.0
@@ -369,7 +370,7 @@ def _read_gaps(run: FindRun, events_path: Path) -> None:
     run.before_move_s = [float(p["before_move_s"]) for p in pos if p.get("before_move_s") is not None]
     run.to_settled_s = [float(p["before_move_s"]) + float(p["settle"]["settle_s"]) for p in pos
                         if p.get("before_move_s") is not None]
-    run.scales = [float(e["scale"]) for e in events if e.get("event") == "time_scale"] or None
+    run.scales = paced_scales(events) or None
 
 
 def run_find(time_scale: float | str, timeout_s: float, seed: int,
@@ -561,7 +562,7 @@ def bench_gaps(scales: str, timeout_s: float, seed: int) -> list[Row]:
     host keeps up), the host's share (before_move_s), the wall time, the losses."""
     rows = []
     for text in (s.strip() for s in scales.split(",") if s.strip()):
-        k: float | str = text if text == "auto" else float(text)
+        k = time_scale_arg(text)
         r = run_find(k, timeout_s, seed)
         lost = "failed" if r.imu_lost is None else f"lost IMU {r.imu_lost}, accel {r.accel_lost}"
         rows.append(Row(f"find 8 × 60 s at {_scale_text(k)}", f"{r.wall_s:.1f} s wall",

@@ -56,6 +56,9 @@ def read_bounds(n_samples: int, rate_hz: float, default_s: float,
 class StreamReader:
     """Background reader over a byte transport; a context manager."""
 
+    _newest_index: int | None = None
+    """Device index of the newest sample decoded (a sample stream's `_on_bytes` sets it)."""
+
     device = "device"
 
     def __init__(self, port: str, timeout_s: float) -> None:
@@ -89,7 +92,7 @@ class StreamReader:
     def _read_loop(self) -> None:
         stop = self._stop  # a reconnect replaces the event; this thread answers to its own
         while not stop.is_set():
-            newest = getattr(self, "_newest_index", None)  # only this thread changes it
+            newest = self._newest_index  # only this thread changes it
             try:
                 data = self._t.read_available()
             except BaseException as exc:  # noqa: BLE001 - handed to the reading thread

@@ -567,29 +567,44 @@ class Accelerometer:
         with self._lock:
             return self._decoder.heartbeat_state
 
+    # what a node's samples are, for read (the CiA 410 inclinometer's are slopes)
+    _noun = "samples"
+    _silent_hint = "is the node operational (start_node) and the bitrate right?"
+
+    def _queued(self) -> int:
+        """With `_lock` held: samples received and not read yet."""
+        return self._decoder.pending()
+
+    def _drain(self, k: int) -> Any:
+        """With `_lock` held: the oldest `k` queued samples, raw."""
+        return self._decoder.drain(k)
+
+    def _block(self, raw: Any) -> AccelBlock:
+        """Drained samples as an AccelBlock (outside the lock: the bus thread goes on meanwhile)."""
+        return samples_to_block(raw, self._decoder.layout)
+
     def read(self, n_samples: int, timeout_s: float | None = None, until_stopped: bool = False) -> AccelBlock:
-        """The next `n_samples` paired samples, blocking; DeviceError naming the channel on timeout.
+        """The next `n_samples` samples, blocking; DeviceError naming the channel on timeout.
         `until_stopped`: fewer once the node has proven its stop (:meth:`_stop_proven`) — all it sent."""
         n, wait_s = read_bounds(n_samples, self.rate_hz, self.timeout_s, timeout_s)
         with self._lock:
             self._want = n  # the bus thread wakes this one when n are there, not at every sample
             try:
                 self._wait_locked(
-                    lambda: self._decoder.pending() >= n or until_stopped and self._stop_proven(),
+                    lambda: self._queued() >= n or until_stopped and self._stop_proven(),
                     wait_s,
-                    lambda: f"only {self._decoder.pending()} of {n} samples from node 0x{self.node_id:02X} "
-                    f"within {wait_s:g} s on {self.port} — is the node operational (start_node) and the "
-                    "bitrate right?",
+                    lambda: f"only {self._queued()} of {n} {self._noun} from node 0x{self.node_id:02X} "
+                    f"within {wait_s:g} s on {self.port} — {self._silent_hint}",
                 )
             finally:
                 self._want = 1
-            raw = self._decoder.drain(min(n, self._decoder.pending()))
-        return samples_to_block(raw, self._decoder.layout)
+            raw = self._drain(min(n, self._queued()))
+        return self._block(raw)
 
     def pending_samples(self) -> int:
-        """Paired samples received and not read yet."""
+        """Samples received and not read yet."""
         with self._lock:
-            return self._decoder.pending()
+            return self._queued()
 
     def discard_pending(self) -> int:
         """Drop paired samples not read yet; returns how many."""

@@ -104,7 +104,6 @@ class Imu(SampleQueue, StreamReader):
         self._decoder = KvhDecoder()
         self._pending: list[tuple[np.ndarray, np.ndarray]] = []
         self._pending_n = 0
-        self._newest_index: int | None = None
         self._tap: list[tuple[np.ndarray, np.ndarray]] | None = None  # every decoded chunk (start_tap)
         self._first_index: int | None = None
         self._config_mode = False

@@ -52,9 +52,14 @@ def disturbance_z(samples: np.ndarray, window: int, floor: float = 0.0) -> tuple
     if n_win < 3:
         return 0.0, -1
     blocks = x[: n_win * window].reshape(n_win, window, x.shape[1])
-    means = blocks.mean(axis=1)  # [n_win, k]
-    sigma = np.median(np.std(np.diff(blocks, axis=1), axis=1), axis=0) / np.sqrt(2.0)  # [k]
-    sigma = np.maximum(sigma, floor)
+    return _window_z(blocks.mean(axis=1), np.std(np.diff(blocks, axis=1), axis=1), window, floor)
+
+
+def _window_z(means: np.ndarray, diff_std: np.ndarray, window: int, floor: float) -> tuple[float, int]:
+    """From the windows' means and first-difference stds [n_win, k]: the largest |mean − median of
+    the means| in σ of a window mean (σ per sample = median diff std / √2, at least `floor`), and
+    its window."""
+    sigma = np.maximum(np.median(diff_std, axis=0) / np.sqrt(2.0), floor)  # [k]
     z = np.abs(means - np.median(means, axis=0)) / (np.maximum(sigma, 1e-300) / np.sqrt(window))
     j = int(np.argmax(z.max(axis=1)))
     return float(z[j].max()), j
@@ -122,11 +127,7 @@ class DisturbanceWindows:
         for means_parts, std_parts in zip(self._means, self._diff_std, strict=True):
             if not means_parts or sum(len(m) for m in means_parts) < 3:
                 continue
-            means, diff_std = np.vstack(means_parts), np.vstack(std_parts)
-            sigma = np.maximum(np.median(diff_std, axis=0) / np.sqrt(2.0), 0.0)
-            z = np.abs(means - np.median(means, axis=0)) / (np.maximum(sigma, 1e-300) / np.sqrt(self.window))
-            j = int(np.argmax(z.max(axis=1)))
-            best = max(best, (float(z[j].max()), j))
+            best = max(best, _window_z(np.vstack(means_parts), np.vstack(std_parts), self.window, 0.0))
         return best
 
 

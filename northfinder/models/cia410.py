@@ -28,7 +28,6 @@ from northfinder.codecs import cia410
 from northfinder.codecs.canopen import HEARTBEAT_STATES
 from northfinder.devices.registry import ModelSpec
 from northfinder.devices.tilt import AccelBlock, TiltDecoder, TiltSensor
-from northfinder.drivers._stream import read_bounds
 from northfinder.drivers.accelerometer import Accelerometer
 from northfinder.errors import DeviceError
 from northfinder.models._section import value
@@ -119,27 +118,26 @@ class Cia410Inclinometer(Accelerometer, TiltSensor):
             if not msg.is_error_frame and self._slopes.feed(msg.arbitration_id, bytes(msg.data),
                                                            msg.is_extended_id, msg.is_remote_frame):
                 self._log(msg)
-                self._lock.notify_all()
+                if self._slopes.pending() >= self._want:  # the reader wakes once its count is there
+                    self._lock.notify_all()
                 return
         super()._on_frame(msg)
 
-    def read(self, n_samples: int, timeout_s: float | None = None, until_stopped: bool = False) -> AccelBlock:
-        n, wait_s = read_bounds(n_samples, self.rate_hz, self.timeout_s, timeout_s)
-        with self._lock:
-            self._wait_locked(lambda: self._slopes.pending() >= n or until_stopped and self._stop_proven(),
-                              wait_s,
-                              lambda: f"only {self._slopes.pending()} of {n} slopes from node "
-                              f"0x{self.node_id:02X} within {wait_s:g} s on {self.port} — is the node "
-                              "operational and its TPDO1 event timer set?")
-            counter, counts = self._slopes.drain(min(n, self._slopes.pending()))
-        block = slopes_to_block(counter, counts, self.resolution_mdeg)
+    # read (Accelerometer's) on the slopes
+    _noun = "slopes"
+    _silent_hint = "is the node operational and its TPDO1 event timer set?"
+
+    def _queued(self) -> int:
+        return self._slopes.pending()
+
+    def _drain(self, k: int) -> Any:
+        return self._slopes.drain(k)
+
+    def _block(self, raw: Any) -> AccelBlock:
+        block = slopes_to_block(*raw, self.resolution_mdeg)
         with self._lock:
             self._slopes.stats.saturated += int(np.count_nonzero(block.status))
         return block
-
-    def pending_samples(self) -> int:
-        with self._lock:
-            return self._slopes.pending()
 
     def discard_pending(self) -> int:
         with self._lock:

@@ -195,7 +195,6 @@ class StimImu(SampleQueue, StreamReader, InertialStream):
         self._stream: StimStream | None = None
         self._pending: list[tuple[np.ndarray, stim.StimSamples]] = []
         self._pending_n = 0
-        self._newest_index: int | None = None
         self._stalls: list[int] = []
         self._unknown_seen = 0
         self._t = SerialTransport(port, device=DEVICE, baudrate=baudrate, timeout_s=0.05, raw_log=raw_log)

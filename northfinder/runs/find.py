@@ -52,6 +52,7 @@ from northfinder.runs.find_pace import (
     KEEP_UP_S,
     AutoPace,
     PacedEventLog,
+    paced_scales,
 )
 from northfinder.sequencer import Interrupted, RunFailed, Sequencer, SequencerLimits
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
@@ -469,7 +470,7 @@ def pace_note(events: Sequence[dict[str, Any]]) -> str | None:
     were stretched by the host (--time-scale auto paces itself by the same measure)."""
     start = next((e for e in events if e.get("event") == "start"), None)
     sim = (start or {}).get("simulate") or {}
-    scales = [float(e["scale"]) for e in events if e.get("event") == "time_scale"]
+    scales = paced_scales(events)
     scale = scales[-1] if scales else float(sim.get("time_scale") or 1.0)
     if scale <= 1.0 or sim.get("faults"):
         return None

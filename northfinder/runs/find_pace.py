@@ -12,7 +12,7 @@ keeps up with, under its present load; each change is a `time_scale` event.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 AUTO = "auto"
@@ -50,9 +50,14 @@ def host_kept_up(event: dict[str, Any], losses_count: bool = True) -> bool | Non
     return float(lag) <= KEEP_UP_S
 
 
+def paced_scales(events: Sequence[dict[str, Any]]) -> list[float]:
+    """The scales a paced run's `time_scale` events set, in order (empty for a fixed scale)."""
+    return [float(e["scale"]) for e in events if e.get("event") == "time_scale"]
+
+
 def pace_line(events: list[dict[str, Any]]) -> str | None:
     """`time scale auto: 40 → 80 → 160×` for a paced run's summary (None for a fixed scale)."""
-    scales = [float(e["scale"]) for e in events if e.get("event") == "time_scale"]
+    scales = paced_scales(events)
     if not scales:
         return None
     return "time scale auto: " + " → ".join(f"{s:g}" for s in scales) + "×"
