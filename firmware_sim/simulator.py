@@ -508,17 +508,15 @@ class Simulator:
     def _build_can(self, streams: list[np.random.SeedSequence]) -> None:
         import can
 
+        from firmware_sim.can_wire import wire
         from firmware_sim.devices.canopen_accel import CanAccelNode
 
         cfg = self.config
         if cfg.can_interface == "slcan":
             from firmware_sim.devices.slcan_adapter import SlcanAdapter
 
-            channel = f"firmware_sim-{id(self):x}"
-            node_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-            self._buses.append(node_bus)
-            adapter_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-            self._buses.append(adapter_bus)
+            node_bus, adapter_bus = wire(f"firmware_sim-{id(self):x}")
+            self._buses += [node_bus, adapter_bus]
             self.can_adapter = SlcanAdapter(adapter_bus)
         elif cfg.can_interface == "virtual":
             node_bus = can.Bus(interface="virtual", channel=cfg.can_channel, receive_own_messages=False)

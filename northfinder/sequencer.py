@@ -146,11 +146,15 @@ class SettleResult:
     onset_index: int | None = None
     """Device index of the first sample of the first gyro-z window that showed the table turning
     (None when no motion was expected or the unit has no gyro z)."""
+    end_index: int | None = None
+    """Device index of the settle's last sample (None: none read): the dwell starts on the first
+    dwell-grid index after it."""
 
     def as_event(self) -> dict[str, Any]:
         """The settle as the events log records it."""
-        return {"settle_s": self.settle_s, "settled": self.settled, "windows": self.windows,
-                "after_motion_s": self.after_motion_s}
+        event = {"settle_s": self.settle_s, "settled": self.settled, "windows": self.windows,
+                 "after_motion_s": self.after_motion_s}
+        return event if self.end_index is None else {**event, "end_index": self.end_index}
 
     @property
     def rest_before_dwell_s(self) -> float:
@@ -450,9 +454,13 @@ class Sequencer:
 
     def _align_to_grid(self, n_grid: int) -> None:
         """Read (and drop) samples until the next one's device index is a multiple of `n_grid`, so
-        that windows and dwells lie on a fixed sample grid whatever the host's timing."""
-        first = self._read_imu(1)
-        k = (-(int(first.sample_index[-1]) + 1)) % n_grid
+        that windows and dwells lie on a fixed sample grid whatever the host's timing; none when it
+        is already (a model that cannot tell its next index: one read to learn it)."""
+        wait_s = self.limits.read_timeout_s + 2.0 / float(self.imu.rate_hz)
+        nxt = self.imu.next_index(wait_s)
+        if nxt is None:
+            nxt = int(self._read_imu(1).sample_index[-1]) + 1
+        k = (-nxt) % n_grid
         if k:
             self._read_imu(k)
 
@@ -472,7 +480,7 @@ class Sequencer:
             n_settle = int(round(self.limits.stage_settle_s * rate))
             if n_settle:
                 self._read_imu(n_settle)
-            return SettleResult(n_settle / rate, True, 0)
+            return SettleResult(n_settle / rate, True, 0, end_index=self._last_imu_index)
         move_s = self._move_duration_s(self._move_deg if move_deg is None else move_deg)
         max_windows = max(1, int(np.ceil((cfg.settle_max_s + move_s) * rate / n_win)))
         min_windows = int(np.ceil(cfg.settle_min_s * rate / n_win))
@@ -495,9 +503,10 @@ class Sequencer:
             if k >= min_windows and settle_reached(windows[-2:], cfg.settle_ratio, cfg.settle_rest_dph):
                 margin_s = self._settle_margin(rate)
                 rest_s = after_motion_s(means_dph, n_win / rate, margin_s) if expect_motion else None
-                return SettleResult(k * n_win / rate + margin_s, True, k, rest_s, onset)
+                return SettleResult(k * n_win / rate + margin_s, True, k, rest_s, onset, self._last_imu_index)
         rest_s = after_motion_s(means_dph, n_win / rate, 0.0) if expect_motion else None
-        return SettleResult(max_windows * n_win / rate, False, max_windows, rest_s, onset)
+        return SettleResult(max_windows * n_win / rate, False, max_windows, rest_s, onset,
+                            self._last_imu_index)
 
     def _find_slew(self, n_win: int, move_s: float, ready_index: int | None) -> tuple[int, float]:
         """Read windows until the gyro z shows the table turning: (first index of that window, its

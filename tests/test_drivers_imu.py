@@ -248,3 +248,23 @@ def test_caught_up_index_is_the_newest_index_when_the_reader_had_read_all_the_un
         waiting.join(5.0)
         assert got and got[0] is not None
         assert 99 <= got[0] < imu.newest_index() == sent - 1
+
+
+def test_next_index_is_the_index_the_next_read_returns_and_reads_nothing(pty_pair):
+    """next_index: the device index of the first sample not yet read — the sequencer lines a dwell up
+    on its grid with it without dropping a sample when the stream is on the grid already; a lost
+    sample moves it on; a silent unit is a DeviceError naming the port."""
+    master, path = pty_pair
+    frames, _ = _frames(20)
+    with Imu(path, wait_for_data=False) as imu:
+        with pytest.raises(DeviceError, match=path):
+            imu.next_index(0.2)
+        write_all(master, b"".join(frames[:5]))
+        assert imu.next_index(5.0) == 0
+        assert imu.next_index(5.0) == 0  # reads nothing
+        assert imu.read(3, timeout_s=5).sample_index.tolist() == [0, 1, 2]
+        assert imu.next_index(5.0) == 3
+        assert imu.read(2, timeout_s=5).sample_index.tolist() == [3, 4]
+        write_all(master, b"".join(frames[6:8]))  # frame 5 lost on the line
+        assert imu.next_index(5.0) == 6
+        assert imu.read(2, timeout_s=5).sample_index.tolist() == [6, 7]

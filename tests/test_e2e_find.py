@@ -168,9 +168,20 @@ def test_find_against_firmware_sim_process_over_ptys_and_slcan(tmp_path, fast_st
         )
     _check_accuracy(result, truth)
     _check_replay(run_dir)
+    _check_dwells_start_on_the_next_grid_index(run_dir)
     assert {"imu.raw", "can.asc", "turntable.log", "events.jsonl", "config.json", "result.json"} <= {
         p.name for p in run_dir.iterdir()
     }
+
+
+def _check_dwells_start_on_the_next_grid_index(run_dir: Path, grid: int = 1000) -> None:
+    """Every dwell starts on the first 1 s grid index (1 kHz IMU) after its settle's last sample:
+    none when the settle ended on the grid (that once dropped a whole grid step, 1 s more gap)."""
+    positions = [e for e in read_events(run_dir) if e["event"] == "position"]
+    assert positions
+    for e in positions:
+        end = e["settle"]["end_index"]
+        assert e["imu"]["first_index"] == -(-(end + 1) // grid) * grid, e
 
 
 def _in_process_run(tmp_path: Path, interface: str, channel: str, plan: str = "positions+motion",

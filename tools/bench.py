@@ -327,8 +327,8 @@ class FindRun:
     before_move_s: list[float] | None = None
     """The position events' before_move_s: the host's share of each gap."""
     to_settled_s: list[float] | None = None
-    """before_move_s + the settle's settle_s: dwell end → settle end, before the 1 s dwell grid
-    rounds it up into the gap."""
+    """Dwell end → the next settle's last sample (its `end_index`), before the 1 s dwell grid rounds
+    it up into the gap."""
     scales: list[float] | None = None
     """--time-scale auto: the scales the pace set, in order."""
 
@@ -339,7 +339,7 @@ class FindRun:
         out = (f"gap between dwells median {np.median(g):.1f} s device ({g.min():.0f}–{g.max():.0f}: "
                f"{', '.join(f'{x:.0f}' for x in g)}), before_move_s median {np.nanmedian(lag):.1f}")
         if self.to_settled_s:
-            out += f", settled {', '.join(f'{x:.1f}' for x in self.to_settled_s)} s after the dwell before"
+            out += f", settled {', '.join(f'{x:.2f}' for x in self.to_settled_s)} s after the dwell before"
         return out + (f"; scales {' → '.join(f'{k:g}' for k in self.scales)}" if self.scales else "")
 
     @property
@@ -368,8 +368,8 @@ def _read_gaps(run: FindRun, events_path: Path) -> None:
     run.gaps_s = [(b["imu"]["first_index"] - a["imu"]["last_index"]) / rate
                   for a, b in zip(pos, pos[1:], strict=False)]
     run.before_move_s = [float(p["before_move_s"]) for p in pos if p.get("before_move_s") is not None]
-    run.to_settled_s = [float(p["before_move_s"]) + float(p["settle"]["settle_s"]) for p in pos
-                        if p.get("before_move_s") is not None]
+    run.to_settled_s = [(b["settle"]["end_index"] - a["imu"]["last_index"]) / rate
+                        for a, b in zip(pos, pos[1:], strict=False) if "end_index" in b["settle"]]
     run.scales = paced_scales(events) or None
 
 

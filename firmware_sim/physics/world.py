@@ -34,6 +34,8 @@ DEG = math.pi / 180.0
 # 3-point Gauss–Legendre on [0, 1]: exact for polynomials up to degree 5 on each interval
 _GL_X = 0.5 + 0.5 * np.array([-math.sqrt(0.6), 0.0, math.sqrt(0.6)])
 _GL_W = np.array([5.0, 8.0, 5.0]) / 18.0
+STILL_ROWS_KEPT = 8
+"""Rest rows kept (World.increments): a few sensors at the table's present angle."""
 
 
 @dataclass(frozen=True)
@@ -227,8 +229,9 @@ class World:
         self.table = table if table is not None else TableMotion()
         self.disturbances: list[Disturbance] = []
         self._static_cache: dict | None = None
-        self._still_key: tuple | None = None
-        self._still_rows: tuple[np.ndarray, np.ndarray] = (np.zeros((1, 3)), np.zeros((1, 3)))
+        self._still_rows: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        """(Δθ, Δv) of one sample at rest, by (α, dt, lever arm): every sensor on the table has its
+        own (a single entry thrashed between the IMU and the accelerometer at every tick)."""
 
     @classmethod
     def static(
@@ -263,7 +266,7 @@ class World:
             w_ie = earth.earth_rate_n_rad_s(self.site.latitude_deg * DEG)
             g_n = np.array([0.0, 0.0, -self.site.gravity_m_s2])
             self._static_cache = {"key": key, "w": c.T @ w_ie, "f": c.T @ (-g_n)}
-            self._still_key = None
+            self._still_rows.clear()
         return self._static_cache
 
     def attitude(self, t_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -387,11 +390,13 @@ class World:
             alpha = float(self.table.kinematics(np.array([t0]))[0][0])
             self._static_p()  # refreshes the caches if the platform or site was swapped
             key = (alpha, dt, tuple(r.tolist()))
-            if self._still_key != key:
+            rows = self._still_rows.get(key)
+            if rows is None:
+                if len(self._still_rows) >= STILL_ROWS_KEPT:  # the table's old positions
+                    self._still_rows.clear()
                 w, f = self.truth(np.array([t0]), r)
-                self._still_key, self._still_rows = key, (w * dt, f * dt)
-            w_dt, f_dt = self._still_rows
-            return np.repeat(w_dt, n, axis=0), np.repeat(f_dt, n, axis=0)
+                rows = self._still_rows[key] = (w * dt, f * dt)
+            return np.repeat(rows[0], n, axis=0), np.repeat(rows[1], n, axis=0)
         edges = t0 + dt * np.arange(n + 1)
         nodes = (edges[:-1, None] + dt * _GL_X).ravel()
         w_rot, f_b, _ = self._truth_parts(nodes, r)

@@ -196,6 +196,11 @@ class InertialStream(ABC):
         not lag by a backlog. A model that cannot tell: the newest index."""
         return self.newest_index()
 
+    def next_index(self, timeout_s: float) -> int | None:
+        """Device index of the sample the next :meth:`read` returns, waiting at most `timeout_s`
+        host seconds for one, reading nothing; None when the model cannot tell."""
+        return None
+
     def wait_decoded(self, n: int, timeout_s: float) -> bool | None:
         """Wait until `n` more samples have been decoded (read or not), at most `timeout_s` host
         seconds: True when they came, False on time-out; None when the model cannot tell (then

@@ -135,8 +135,10 @@ class SampleQueue:
     samples), `_pending_n` samples in them, and `_newest_index`, the device index of the newest
     decoded."""
 
+    port: str
     _cond: threading.Condition
     _error: BaseException | None
+    _wait_locked: Callable[..., None]
     _pending: list[tuple[Any, Any]]
     _pending_n: int
     _newest_index: int | None
@@ -155,6 +157,16 @@ class SampleQueue:
             got += k
         self._pending_n -= n
         return taken
+
+    def next_index(self, timeout_s: float) -> int:
+        """Device index of the sample the next read returns, once one is decoded (at most
+        `timeout_s` host seconds; DeviceError naming the port after that). Reads nothing."""
+        with self._cond:
+            self._wait_locked(
+                lambda: self._pending_n >= 1, timeout_s,
+                lambda: f"no sample arrived within {timeout_s:g} s on {self.port} "
+                "— is the IMU still streaming (cable, rate, not left in config mode)?")
+            return int(self._pending[0][0][0])
 
     def discard_pending(self) -> int:
         """Drop samples decoded but not read yet (e.g. those from before a move); returns how many."""
