@@ -69,6 +69,9 @@ def test_pace_note_says_when_device_time_ran_on_between_dwells():
     assert "between a dwell's end and the next move" in note
     quick = [start, *(_position(i, P.KEEP_UP_S / 2) for i in range(1, 4)), stats]
     assert pace_note(quick) is None
+    once = [start, _position(1, P.KEEP_UP_S / 2), _position(2, 7.4), _position(3, P.KEEP_UP_S / 2), stats]
+    note = pace_note(once)  # the median kept up, one move did not
+    assert note is not None and "fell behind at 1 of 3 moves" in note and "up to 7.4 s" in note
     paced = [{**start, "simulate": {"time_scale": "auto", "faults": []}},
              {"event": "time_scale", "scale": 40.0}, {"event": "time_scale", "scale": 80.0}, *slow[1:]]
     assert "--time-scale 80 (auto)" in pace_note(paced)

@@ -466,8 +466,9 @@ def pace_note(events: Sequence[dict[str, Any]]) -> str | None:
     firmware-sim drops what its client leaves unread for a second of wall time, so at a time scale
     above 1 with no fault injected, samples lost on a link (IMU bytes, CAN frames) mean the host fell
     behind — not the bench. And device time runs on while the host works between a dwell's end and
-    the next move: a median `before_move_s` above find_pace.KEEP_UP_S says the gaps between dwells
-    were stretched by the host (--time-scale auto paces itself by the same measure)."""
+    the next move: a `before_move_s` above find_pace.KEEP_UP_S says that gap between dwells was
+    stretched by the host — at every move when the median is (--time-scale auto paces itself by
+    the same measure, move by move)."""
     start = next((e for e in events if e.get("event") == "start"), None)
     sim = (start or {}).get("simulate") or {}
     scales = paced_scales(events)
@@ -485,12 +486,18 @@ def pace_note(events: Sequence[dict[str, Any]]) -> str | None:
                 "for 1 s of wall time); run at a lower --time-scale")
     lags = [float(e["before_move_s"]) for e in events
             if e.get("event") == "position" and e.get("before_move_s") is not None]
-    lag = float(np.median(lags)) if lags else 0.0
-    if lag <= KEEP_UP_S:
+    behind = [x for x in lags if x > KEEP_UP_S]
+    if not behind:
         return None
-    return (f"at {flag} this host did not keep up: device time ran on {lag:.1f} s (median) between a "
-            f"dwell's end and the next move, against ≤ {KEEP_UP_S:g} s when it keeps up; the gaps between "
-            "dwells were stretched by that (nothing lost) — run at a lower --time-scale, or auto")
+    lag = float(np.median(lags))
+    if lag > KEEP_UP_S:
+        return (f"at {flag} this host did not keep up: device time ran on {lag:.1f} s (median) between a "
+                f"dwell's end and the next move, against ≤ {KEEP_UP_S:g} s when it keeps up; the gaps "
+                "between dwells were stretched by that (nothing lost) — run at a lower --time-scale, or auto")
+    return (f"at {flag} this host fell behind at {len(behind)} of {len(lags)} moves: device time ran on "
+            f"up to {max(behind):.1f} s between a dwell's end and the next move, against ≤ {KEEP_UP_S:g} s "
+            "when it keeps up; those gaps between dwells were stretched (nothing lost) — run at a lower "
+            "--time-scale, or auto")
 
 
 def failed(ctx: RunContext, fail: RunFailed, positions: list[PositionMeans]) -> None:
