@@ -130,3 +130,25 @@ def test_a_stream_over_socket_url_is_read_in_chunks_not_bytes(monkeypatch):
     assert block.sample_index.tolist() == list(range(n))
     assert sum(calls) == len(data)
     assert sum(1 for c in calls if c) < 200  # 108 kB: chunks of kilobytes, not 108 000 reads
+
+
+def test_read_pacer_pauses_only_while_the_stream_is_slow():
+    """ReadPacer: no pause until a window has passed; then a pause after each read while the last
+    window's rate was under the threshold, none once it is at or above it (a fast stream, where the
+    latency counts). A fake clock: the decision is on bytes per window, not on this host's speed."""
+    from northfinder.transport import ReadPacer
+
+    now, slept = [0.0], []
+    pacer = ReadPacer(1000.0, pause_s=0.01, window_s=0.25, clock=lambda: now[0], sleep=slept.append)
+    pacer.after_read(10)
+    assert slept == [] and not pacer.slow  # no window measured yet
+    now[0] = 0.3
+    pacer.after_read(10)  # 20 B in 0.3 s: slow
+    assert pacer.slow and slept == [0.01]
+    pacer.after_read(10)
+    assert slept == [0.01, 0.01]
+    now[0] = 0.6
+    pacer.after_read(10_000)  # 10,020 B in 0.3 s: fast, no pause
+    assert not pacer.slow and slept == [0.01, 0.01]
+    pacer.after_read(10)
+    assert slept == [0.01, 0.01]

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from typing import Any
 
 from northfinder.errors import DeviceError
+from northfinder.transport import ReadPacer
 
 
 def wait_until(
@@ -60,6 +61,9 @@ class StreamReader:
     """Device index of the newest sample decoded (a sample stream's `_on_bytes` sets it)."""
 
     device = "device"
+    read_pace_below_bytes_s = 0.0
+    """transport.ReadPacer's rate: under it the reader pauses 10 ms after each read (0: never).
+    A sample stream sets it; a GNSS receiver's few sentences a second are not worth the latency."""
 
     def __init__(self, port: str, timeout_s: float) -> None:
         self.port = port
@@ -91,6 +95,7 @@ class StreamReader:
 
     def _read_loop(self) -> None:
         stop = self._stop  # a reconnect replaces the event; this thread answers to its own
+        pacer = ReadPacer(self.read_pace_below_bytes_s) if self.read_pace_below_bytes_s else None
         while not stop.is_set():
             newest = self._newest_index  # only this thread changes it
             try:
@@ -107,6 +112,8 @@ class StreamReader:
                     self._caught_up = (self._caught_up[0] + 1, newest)
                 self._on_bytes(data)
                 self._cond.notify_all()
+            if pacer is not None:
+                pacer.after_read(len(data))
 
     def _wait_locked(
         self, ready: Callable[[], bool], timeout_s: float, timeout_message: Callable[[], str]
