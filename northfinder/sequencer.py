@@ -456,8 +456,7 @@ class Sequencer:
         """Read (and drop) samples until the next one's device index is a multiple of `n_grid`, so
         that windows and dwells lie on a fixed sample grid whatever the host's timing; none when it
         is already (a model that cannot tell its next index: one read to learn it)."""
-        wait_s = self.limits.read_timeout_s + 2.0 / float(self.imu.rate_hz)
-        nxt = self.imu.next_index(wait_s)
+        nxt = self.imu.next_index(self.limits.read_timeout_s)
         if nxt is None:
             nxt = int(self._read_imu(1).sample_index[-1]) + 1
         k = (-nxt) % n_grid
@@ -465,6 +464,12 @@ class Sequencer:
             self._read_imu(k)
 
     def settle(self, expect_motion: bool = True, move_deg: float | None = None) -> SettleResult:
+        """:meth:`_settle`, and the IMU index it ended at (the dwell starts on the grid after it)."""
+        result = self._settle(expect_motion, move_deg)
+        result.end_index = self._last_imu_index
+        return result
+
+    def _settle(self, expect_motion: bool, move_deg: float | None) -> SettleResult:
         """Wait (in device time) until the table is at rest after a move; called after READY.
 
         With a gyro z: windows on a fixed sample grid from the move command on, first until the
@@ -480,7 +485,7 @@ class Sequencer:
             n_settle = int(round(self.limits.stage_settle_s * rate))
             if n_settle:
                 self._read_imu(n_settle)
-            return SettleResult(n_settle / rate, True, 0, end_index=self._last_imu_index)
+            return SettleResult(n_settle / rate, True, 0)
         move_s = self._move_duration_s(self._move_deg if move_deg is None else move_deg)
         max_windows = max(1, int(np.ceil((cfg.settle_max_s + move_s) * rate / n_win)))
         min_windows = int(np.ceil(cfg.settle_min_s * rate / n_win))
@@ -503,10 +508,9 @@ class Sequencer:
             if k >= min_windows and settle_reached(windows[-2:], cfg.settle_ratio, cfg.settle_rest_dph):
                 margin_s = self._settle_margin(rate)
                 rest_s = after_motion_s(means_dph, n_win / rate, margin_s) if expect_motion else None
-                return SettleResult(k * n_win / rate + margin_s, True, k, rest_s, onset, self._last_imu_index)
+                return SettleResult(k * n_win / rate + margin_s, True, k, rest_s, onset)
         rest_s = after_motion_s(means_dph, n_win / rate, 0.0) if expect_motion else None
-        return SettleResult(max_windows * n_win / rate, False, max_windows, rest_s, onset,
-                            self._last_imu_index)
+        return SettleResult(max_windows * n_win / rate, False, max_windows, rest_s, onset)
 
     def _find_slew(self, n_win: int, move_s: float, ready_index: int | None) -> tuple[int, float]:
         """Read windows until the gyro z shows the table turning: (first index of that window, its

@@ -350,6 +350,11 @@ class FindRun:
     def lossless(self) -> bool:
         return self.code == 0 and self.imu_lost == 0 and self.accel_lost == 0
 
+    def says(self) -> str:
+        """What else the run said: its error, and its own line when the host fell behind."""
+        said = f"; the run says: {self.behind}" if self.behind else ""
+        return (f"; {self.error}" if self.error else "") + said
+
     @property
     def kept_up(self) -> bool:
         """Lossless, and the run did not say the host fell behind."""
@@ -458,8 +463,7 @@ def bench_find(scales: list[float], timeout_s: float, seed: int) -> tuple[list[R
             note = f"failed: {r.error}; {cpu}"
         else:
             note = (f"lost IMU {r.imu_lost}, accel {r.accel_lost}; device {r.device_s:.1f} s measured; "
-                    f"{cpu}; {r.gaps_note()}" + (f"; {r.error}" if r.error else "")
-                    + (f"; the run says: {r.behind}" if r.behind else ""))
+                    f"{cpu}; {r.gaps_note()}" + r.says())
         rows.append(Row(f"find 8 × 60 s at time scale {k:g}", f"{r.wall_s:.1f} s wall", note))
         print(f"  … time scale {k:g}: {r.wall_s:.1f} s wall, {note}", file=sys.stderr, flush=True)
         if r.kept_up:
@@ -580,8 +584,7 @@ def bench_gaps(scales: str, timeout_s: float, seed: int) -> list[Row]:
         r = run_find(k, timeout_s, seed)
         lost = "failed" if r.imu_lost is None else f"lost IMU {r.imu_lost}, accel {r.accel_lost}"
         rows.append(Row(f"find 8 × 60 s at {_scale_text(k)}", f"{r.wall_s:.1f} s wall",
-                        f"{lost}; {r.gaps_note()}" + (f"; {r.error}" if r.error else "")
-                        + (f"; the run says: {r.behind}" if r.behind else "")))
+                        f"{lost}; {r.gaps_note()}" + r.says()))
         print(f"  … {_scale_text(k)}: {rows[-1].figure}, {rows[-1].note}", file=sys.stderr, flush=True)
         gaps.setdefault(_scale_text(k), []).extend(round(g) for g in r.gaps_s or [])
         walls.setdefault(_scale_text(k), []).append(r.wall_s)

@@ -491,12 +491,13 @@ def pace_note(events: Sequence[dict[str, Any]]) -> str | None:
         return None
     lag = float(np.median(lags))
     if lag > KEEP_UP_S:
-        return (f"at {flag} this host did not keep up: device time ran on {lag:.1f} s (median) between a "
-                f"dwell's end and the next move, against ≤ {KEEP_UP_S:g} s when it keeps up; the gaps "
-                "between dwells were stretched by that (nothing lost) — run at a lower --time-scale, or auto")
-    return (f"at {flag} this host fell behind at {len(behind)} of {len(lags)} moves: device time ran on "
-            f"up to {max(behind):.1f} s between a dwell's end and the next move, against ≤ {KEEP_UP_S:g} s "
-            "when it keeps up; those gaps between dwells were stretched (nothing lost) — run at a lower "
+        what, gaps = f"did not keep up: device time ran on {lag:.1f} s (median)", "the gaps"
+    else:
+        what = (f"fell behind at {len(behind)} of {len(lags)} moves: device time ran on up to "
+                f"{max(behind):.1f} s")
+        gaps = "those gaps"
+    return (f"at {flag} this host {what} between a dwell's end and the next move, against ≤ {KEEP_UP_S:g} s "
+            f"when it keeps up; {gaps} between dwells were stretched by that (nothing lost) — run at a lower "
             "--time-scale, or auto")
 
 
