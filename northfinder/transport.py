@@ -365,26 +365,31 @@ class ReadPacer:
     reader did not gain from it (its cost is per frame, in python-can's Notifier and canopen), so only
     the IMU drivers pace their reads. The pause adds `pause_s` of latency, nothing at the
     rates where latency counts: the rate is measured over each `window_s` of wall time, and the
-    pause stops as soon as it is at or above `below_bytes_s` (a time-scaled simulator). The clock and
-    the sleep are parameters for tests."""
+    pause stops as soon as it is at or above `below_bytes_s` (a time-scaled simulator). Nor is there a
+    pause after a read of `small_bytes` or more: bytes were waiting, the reader is behind. (The rate is
+    what the reader took, so on a starved host paused reads could measure "slow" again and again
+    while the backlog grew until the simulator dropped bytes.) The clock and the sleep are
+    parameters for tests."""
 
     def __init__(self, below_bytes_s: float, pause_s: float = 0.01, window_s: float = 0.25,
-                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep):
+                 small_bytes: int = 1024, clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep):
         self.below_bytes_s, self.pause_s = float(below_bytes_s), float(pause_s)
-        self.window_s = float(window_s)
+        self.window_s, self.small_bytes = float(window_s), int(small_bytes)
         self._clock, self._sleep = clock, sleep
         self._t0, self._bytes = clock(), 0
         self.slow = False
         """The last window's rate was under below_bytes_s (False until a window has passed)."""
 
     def after_read(self, n_bytes: int) -> None:
-        """Called after each read that brought `n_bytes` (> 0): pause if the stream is slow."""
+        """Called after each read that brought `n_bytes` (> 0): pause if the stream is slow and the
+        read took all there was."""
         self._bytes += n_bytes
         now = self._clock()
         if now - self._t0 >= self.window_s:
             self.slow = self._bytes / (now - self._t0) < self.below_bytes_s
             self._t0, self._bytes = now, 0
-        if self.slow:
+        if self.slow and n_bytes < self.small_bytes:
             self._sleep(self.pause_s)
 
 

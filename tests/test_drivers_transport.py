@@ -133,9 +133,10 @@ def test_a_stream_over_socket_url_is_read_in_chunks_not_bytes(monkeypatch):
 
 
 def test_read_pacer_pauses_only_while_the_stream_is_slow():
-    """ReadPacer: no pause until a window has passed; then a pause after each read while the last
-    window's rate was under the threshold, none once it is at or above it (a fast stream, where the
-    latency counts). A fake clock: the decision is on bytes per window, not on this host's speed."""
+    """ReadPacer: no pause until a window has passed; then a pause after each small read while the
+    last window's rate was under the threshold, none after a read that found bytes waiting (the
+    reader is behind), none once the rate is at or above it (a fast stream, where the latency
+    counts). A fake clock: the decision is on bytes per window, not on this host's speed."""
     from northfinder.transport import ReadPacer
 
     now, slept = [0.0], []
@@ -147,8 +148,10 @@ def test_read_pacer_pauses_only_while_the_stream_is_slow():
     assert pacer.slow and slept == [0.01]
     pacer.after_read(10)
     assert slept == [0.01, 0.01]
+    pacer.after_read(4095)  # bytes were waiting: behind, however slow the last window was
+    assert slept == [0.01, 0.01]
     now[0] = 0.6
-    pacer.after_read(10_000)  # 10,020 B in 0.3 s: fast, no pause
+    pacer.after_read(10_000)  # 14,105 B in 0.3 s: fast, no pause
     assert not pacer.slow and slept == [0.01, 0.01]
     pacer.after_read(10)
     assert slept == [0.01, 0.01]
