@@ -16,6 +16,7 @@ import time
 import numpy as np
 import pytest
 import serial
+from helpers import SerialKeepingInput
 
 from firmware_sim.config import ConfigError, SimConfig
 from firmware_sim.devices import kvh
@@ -153,24 +154,13 @@ def test_invalid_frames_are_deterministic_for_a_seed_whatever_the_batching():
     assert 50 <= int((_frames(a)["status"] == 0).sum()) <= 150  # 0.05 × 2000 = 100
 
 
-class _SerialKeepingInput(serial.Serial):
-    """pyserial whose open() keeps what arrived meanwhile: pyserial flushes the input when it opens
-    a port, and the simulator delivers the IMU's first frame CONNECT_GRACE_WALL_S (50 ms) after it
-    sees the client, so a host loaded by a CPU hog that took longer to open flushed that frame
-    unseen. These tests count every frame from the connect on; the flush is a client's choice."""
-
-    def _reset_input_buffer(self) -> None:
-        if self.is_open:  # (False until open() returns)
-            super()._reset_input_buffer()
-
-
 class _Reader(threading.Thread):
     """Reads a pty with pyserial as fast as it can, noting each chunk's arrival (host monotonic
     time and the simulator's device time)."""
 
     def __init__(self, path: str, sim: Simulator) -> None:
         super().__init__(daemon=True)
-        self.port = _SerialKeepingInput(path, 921600, timeout=0.005)
+        self.port = SerialKeepingInput(path, 921600, timeout=0.005)
         self.sim = sim
         self.chunks: list[tuple[float, float, bytes]] = []
         self.stop = threading.Event()
