@@ -394,6 +394,10 @@ class Sequencer:
             first = exc
         try:
             self.turntable.re_enable()
+            # the settle looks for the slew of this move, not of the one that faulted: in device time
+            # the rest between them is the host's fault handling, and once long enough (a loaded
+            # host) the settle ended in it and the retried move fell into the dwell
+            self.imu.discard_pending()
             self._move_once(target_deg)
         except StageFault as exc:
             self._stage_error(target_deg, 2, exc)
