@@ -38,6 +38,11 @@ from firmware_sim.config import (
 log = logging.getLogger("firmware_sim")
 
 SWAY_EXAMPLE = "roll=10:8,pitch=5:6,yaw=3:10,heave=0.5:7"
+SWITCH_INTERVAL_S = 1e-4
+"""The interpreter's thread switch interval in the firmware-sim process (Python's default: 5 ms).
+The loop holds the GIL most of a tick at high time scales; the arrival thread (firmware_sim.
+arrivals) must get it within this to stamp a command when it came — 5 ms of wall is 0.6 device s
+at 120×. Contention is rare (once per command), so the shorter interval costs nothing measurable."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -252,6 +257,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from firmware_sim.simulator import Simulator
 
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     done = threading.Event()
 
     def on_signal(signum: int, frame: object) -> None:

@@ -28,6 +28,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from firmware_sim.arrivals import ArrivalStamper
 from firmware_sim.clock import DeviceClock
 from firmware_sim.config import (
     STAGE_RIPPLE_PCT,
@@ -633,14 +634,18 @@ class Simulator:
         if not self.holds_for_client:
             self.clock.start()
             self._clock_running = True
+        stamper = ArrivalStamper(self.now)
+        owners: dict[PtyPort, Device] = {}  # every port a client has had open: input stamped
         next_tick = time.monotonic()
         try:
             while not self._stop.is_set():
-                by_fd = {fd: d for d in self.devices if (fd := d.fileno()) is not None}
+                watched = {p: d for d in self.devices if (p := d.input_port()) is not None}
+                owners.update(watched)  # before the client left, it is still the device's
+                stamper.watch({p.master_fd: p for p in watched})
                 backlogged = {p.fileno(): p for p in self._ports()
                               if p.pending and not p.closed and p.connected}
                 wait_s = max(0.0, next_tick - time.monotonic())
-                readable, writable, _ = select.select(list(by_fd), list(backlogged), [], wait_s)
+                readable, writable, _ = select.select([stamper.fileno()], list(backlogged), [], wait_s)
                 if writable and not readable and time.monotonic() < next_tick and \
                         sum(backlogged[fd].flush() for fd in writable):
                     continue  # a client read: its pty topped up at once, the tick still to come
@@ -648,11 +653,9 @@ class Simulator:
                 if not self._clock_running and self._client_ready():
                     self.clock.start()
                     self._clock_running = True
-                t = self.clock.now() if self._clock_running else 0.0
-                for fd in readable:  # held: commands are answered at device time 0
-                    device = by_fd[fd]
-                    if device.fileno() == fd:
-                        device.on_readable(t)
+                t, arrived = stamper.take()  # held: commands are answered at device time 0
+                for t_in, port, data in arrived:
+                    owners[port].on_input(data, t_in)
                 for device in self.devices:
                     if self._clock_running and self._device_may_run(device):
                         device.advance(t)
@@ -664,6 +667,8 @@ class Simulator:
             log.exception("simulator loop failed")
             self.error = exc
             self.failed.set()
+        finally:
+            stamper.close()
 
     def now(self) -> float:
         """Device seconds since start (0 until the loop has started device time; the vehicle: until

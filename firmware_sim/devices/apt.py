@@ -101,8 +101,8 @@ class AptStage(PtyDevice):
         self.bad_bytes = 0
 
     # -- Device surface -------------------------------------------------------------------------
-    def on_readable(self, t_device_s: float) -> None:
-        self._rx += self.port.read()
+    def on_input(self, data: bytes, t_device_s: float) -> None:
+        self._rx += data
         while len(self._rx) >= 6:
             msg_id, length = struct.unpack_from("<HH", self._rx, 0)
             dest, source = self._rx[4], self._rx[5]

@@ -1,9 +1,10 @@
 """The one surface every emulated device implements, so that one loop can run them all.
 
-The simulator's loop (firmware_sim.simulator) reads the shared device clock, then for each
-device: if its `fileno()` is readable, calls `on_readable(t)`; then calls `advance(t)`, which
-must emit everything the device owes up to device time `t` (samples, heartbeats, end of a
-move). Devices never sleep and never read the wall clock: device time is the only time.
+The simulator's loop (firmware_sim.simulator) reads the shared device clock, hands each device
+the bytes its client sent with the device time they arrived (`on_input(data, t)`: the loop's
+arrival thread reads each `input_port()` as bytes come), then calls `advance(t)`, which must emit
+everything the device owes up to device time `t` (samples, heartbeats, end of a move). Devices
+never sleep and never read the wall clock: device time is the only time.
 
 This module holds no protocol: each device's bytes follow its own document, cited in its module
 (SMC100 user manual §5, KVH 1775 ICD 56-0298, CiA 301/410, Thorlabs APT protocol issue 28,
@@ -20,16 +21,28 @@ if TYPE_CHECKING:
 
 
 class Device(abc.ABC):
-    """An emulated instrument. Subclasses implement `advance`; ports add `fileno`/`on_readable`."""
+    """An emulated instrument. Subclasses implement `advance`; ports add `input_port`/`on_input`."""
 
     name: str = "device"
 
-    def fileno(self) -> int | None:
-        """File descriptor the loop should watch for input, or None."""
+    def input_port(self) -> PtyPort | None:
+        """The pty whose client input the device takes, while a client has it open; else None
+        (a master without a client polls readable — hang-up — all the time)."""
         return None
 
-    def on_readable(self, t_device_s: float) -> None:  # noqa: B027 - optional hook
-        """Input is waiting on `fileno()`; read it without blocking and act on it at `t_device_s`."""
+    def fileno(self) -> int | None:
+        """The input port's descriptor, for a loop that polls devices itself (tests, tools)."""
+        port = self.input_port()
+        return None if port is None else port.master_fd
+
+    def on_input(self, data: bytes, t_device_s: float) -> None:  # noqa: B027 - optional hook
+        """Act on bytes the client sent, which arrived at device time `t_device_s`."""
+
+    def on_readable(self, t_device_s: float) -> None:
+        """Read all that waits on the input port without blocking and act on it at `t_device_s`."""
+        port = self.input_port()
+        while port is not None and (data := port.read()):
+            self.on_input(data, t_device_s)
 
     @abc.abstractmethod
     def advance(self, t_device_s: float) -> None:
@@ -49,8 +62,8 @@ class PtyDevice(Device):
 
     port: PtyPort
 
-    def fileno(self) -> int | None:
-        return self.port.watch_fileno()
+    def input_port(self) -> PtyPort | None:
+        return None if self.port.watch_fileno() is None else self.port
 
     def endpoint(self) -> str:
         return self.port.path

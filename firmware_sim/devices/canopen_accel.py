@@ -709,10 +709,6 @@ class CanAccelNode(CanopenNode):
         return int(self.od[(0x1017, 0)].value) / 1000.0
 
     # -- Device surface --------------------------------------------------------------------
-    def fileno(self) -> int | None:
-        """The loop drives the node through `advance`; its bus is polled there."""
-        return None
-
     def endpoint(self) -> dict[str, Any]:
         """The node as a client sees it (the bus channel itself is the adapter's endpoint)."""
         return {"node_id": self.node_id}

@@ -201,7 +201,7 @@ class GnssReceiver(PtyDevice):
         self.sentences_truncated = 0
 
     # -- Device surface ---------------------------------------------------------------------
-    def fileno(self) -> int | None:
+    def input_port(self) -> PtyPort | None:
         return None  # the receiver takes no commands
 
     def advance(self, t_device_s: float) -> None:

@@ -386,8 +386,8 @@ class KvhImu(PtyDevice):
                 pass
             self._link_dir = None
 
-    def on_readable(self, t_device_s: float) -> None:
-        self._rx += self.port.read()
+    def on_input(self, data: bytes, t_device_s: float) -> None:
+        self._rx += data
         while (cut := self._rx.find(b"\n")) >= 0:
             line = bytes(self._rx[:cut]).strip(b"\r ").decode("ascii", "replace")
             del self._rx[: cut + 1]

@@ -137,20 +137,19 @@ class SlcanAdapter(Device):
         return self.port.path
 
     # -- Device surface --------------------------------------------------------------------
-    def fileno(self) -> int | None:
-        """The pty master while a client has the port open; None otherwise, because a master
-        without a client polls readable (hang-up) all the time and would spin the loop."""
-        return None if self._closed else self.port.watch_fileno()
+    def input_port(self) -> PtyPort | None:
+        """The pty while a client has it open; None otherwise, because a master without a client
+        polls readable (hang-up) all the time and would spin the loop."""
+        return None if self._closed or self.port.watch_fileno() is None else self.port
 
     def endpoint(self) -> dict[str, Any]:
         return {"interface": "slcan", "channel": self.port.path}
 
-    def on_readable(self, t_device_s: float) -> None:
-        """Read what the client typed, answer each command, put its frames onto the bus."""
+    def on_input(self, data: bytes, t_device_s: float) -> None:
+        """What the client typed: answer each command, put its frames onto the bus."""
         if self._closed:
             return
-        while chunk := self.port.read():
-            self._rx.extend(chunk)
+        self._rx.extend(data)
         reply = self._handle_lines()
         if reply:
             self.port.write(reply)

@@ -382,8 +382,8 @@ class Smc100(PtyDevice):
             rad["AC"], rad["VA"], rad["OH"])
 
     # -- Device surface ---------------------------------------------------------------------
-    def on_readable(self, t_device_s: float) -> None:
-        self._rx += self.port.read()
+    def on_input(self, data: bytes, t_device_s: float) -> None:
+        self._rx += data
         while True:
             cut = min((i for i in (self._rx.find(b"\r"), self._rx.find(b"\n")) if i >= 0), default=-1)
             if cut < 0:

@@ -119,8 +119,8 @@ class StimImu(PtyDevice):
         self._rx = bytearray()
 
     # -- Device surface -------------------------------------------------------------------------
-    def on_readable(self, t_device_s: float) -> None:
-        self._rx += self.port.read()
+    def on_input(self, data: bytes, t_device_s: float) -> None:
+        self._rx += data
         while (cut := self._rx.find(b"\r")) >= 0:
             line = bytes(self._rx[:cut]).strip(b"\n ").decode("ascii", "replace")
             del self._rx[: cut + 1]
