@@ -25,6 +25,10 @@ from collections.abc import Callable, Mapping
 
 from firmware_sim.pty import PtyPort
 
+QUIET_RECHECK_S = 0.005
+"""How often a hung-up port is looked at again (wall): a client that closes the port and opens it
+again is read at once, even if the loop never saw it gone (both within one of its ticks)."""
+
 
 class ArrivalStamper:
     """Reads the watched ports as input arrives; `take()` returns it with the device time it came."""
@@ -39,6 +43,7 @@ class ArrivalStamper:
         for fd in (self._wake_r, self._wake_w, self._ctl_r, self._ctl_w):
             os.set_blocking(fd, False)
         self._stopping = False
+        self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="firmware_sim-arrivals", daemon=True)
         self._thread.start()
 
@@ -54,11 +59,14 @@ class ArrivalStamper:
             _poke(self._ctl_w)
 
     def take(self) -> tuple[float, list[tuple[float, PtyPort, bytes]]]:
-        """The device time now, and every chunk stamped before it, in the order it came."""
+        """The device time now, and every chunk stamped before it, in the order it came. Raises
+        what stopped the thread, if something did (the loop then fails, not goes deaf)."""
+        if self.error is not None:
+            raise RuntimeError("the arrival thread stopped") from self.error
+        _drain(self._wake_r)  # first: a chunk stamped after the take below pokes again
         with self._lock:
             t = self._now()
             arrived, self._arrived = self._arrived, []
-        _drain(self._wake_r)
         return t, arrived
 
     def close(self) -> None:
@@ -73,14 +81,24 @@ class ArrivalStamper:
                 os.close(fd)
 
     def _run(self) -> None:
-        quiet: set[int] = set()  # hung up (no client): left out until the loop's next set
+        try:
+            self._watch_ports()
+        except BaseException as exc:  # noqa: BLE001 - handed to the loop by take()
+            self.error = exc
+            _poke(self._wake_w)
+
+    def _watch_ports(self) -> None:
+        quiet: set[int] = set()  # hung up (no client): left out while it stays so
         ports = self._ports
         while not self._stopping:
+            quiet = {fd for fd in quiet if not ports[fd].connected}  # a client may be back
             fds = [fd for fd in ports if fd not in quiet]
             try:
-                readable, _, _ = select.select([*fds, self._ctl_r], [], [])
-            except (OSError, ValueError):  # a port was closed under us: wait for the loop's new set
-                readable = select.select([self._ctl_r], [], [])[0]
+                wait_s = QUIET_RECHECK_S if quiet else None
+                readable, _, _ = select.select([*fds, self._ctl_r], [], [], wait_s)
+            except OSError:  # a port was closed under us: read the loop's set again shortly
+                readable = select.select([self._ctl_r], [], [], QUIET_RECHECK_S)[0]
+                ports, quiet = self._ports, set()
             if self._ctl_r in readable:
                 _drain(self._ctl_r)
                 ports, quiet = self._ports, set()

@@ -18,6 +18,7 @@ import logging
 import os
 import select
 import termios
+import threading
 import tty
 
 log = logging.getLogger("firmware_sim.pty")
@@ -58,6 +59,7 @@ class PtyPort:
         os.set_blocking(self.master_fd, False)
         self._poll = select.poll()
         self._poll.register(self.master_fd, select.POLLOUT)
+        self._poll_lock = threading.Lock()  # one poll object: concurrent poll() calls raise
         self._pending = bytearray()
         self.bytes_written = 0
         self.bytes_dropped = 0
@@ -93,7 +95,9 @@ class PtyPort:
         """True while some client has the slave open."""
         if self.closed:
             return False
-        return not any(ev & select.POLLHUP for _, ev in self._poll.poll(0))
+        with self._poll_lock:  # the loop and the arrival thread (firmware_sim.arrivals) both ask
+            events = self._poll.poll(0)
+        return not any(ev & select.POLLHUP for _, ev in events)
 
     def watch_fileno(self) -> int | None:
         """The master fd for a loop to watch for input; None while closed or while no client has

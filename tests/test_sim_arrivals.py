@@ -171,3 +171,67 @@ def test_a_move_starts_when_its_command_arrived_while_the_loop_was_busy() -> Non
     assert t_start >= written_after
     assert handled_at[-1] - t_start > 0.5, (
         f"the move was planned from {t_start:.3f} s, when the loop took it ({handled_at[-1]:.3f} s)")
+
+
+def test_a_client_that_closes_and_opens_the_port_again_is_read(ports) -> None:
+    """The loop may never see the port without a client (a close and an open within one tick):
+    the thread looks at a hung-up port again by itself."""
+    (a, _), (client_a, _) = ports
+    clock = SetClock()
+    stamper = ArrivalStamper(clock)
+    try:
+        stamper.watch({a.master_fd: a})
+        client_a.close()
+        deadline = time.monotonic() + WAIT_S
+        while a.connected and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.05)  # the thread has seen the hang-up
+        with serial.Serial(a.path, 115200, timeout=0) as again:
+            clock.t = 7.0
+            again.write(b"0SE\r")
+            arrived = take_all(stamper, 4)
+    finally:
+        stamper.close()
+    assert b"".join(d for _, _, d in arrived) == b"0SE\r"
+    assert {ts for ts, _, _ in arrived} == {7.0}
+
+
+def test_what_stops_the_thread_reaches_the_loop(ports) -> None:
+    """An unexpected error in the arrival thread is raised by take(), so the simulator's loop fails
+    and says why instead of going deaf to every client."""
+    (a, _), (client_a, _) = ports
+
+    def broken(max_bytes: int = 65536) -> bytes:
+        raise RuntimeError("concurrent poll() invocation")
+
+    a.read = broken
+    stamper = ArrivalStamper(SetClock())
+    try:
+        stamper.watch({a.master_fd: a})
+        client_a.write(b"x")
+        wait_readable(stamper.fileno())
+        with pytest.raises(RuntimeError, match="arrival thread stopped"):
+            stamper.take()
+    finally:
+        stamper.close()
+
+
+def test_two_threads_may_ask_whether_a_client_is_there(ports) -> None:
+    """PtyPort.connected from the loop and the arrival thread at once (one poll object: CPython
+    raises on a concurrent poll())."""
+    (a, _), _ = ports
+    errors: list[BaseException] = []
+
+    def ask() -> None:
+        try:
+            for _ in range(20_000):
+                assert a.connected
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=ask) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors[0]

@@ -38,6 +38,17 @@ def _read_exact(port: serial.Serial, n: int, timeout_s: float = 30.0) -> bytes:
     return bytes(out)
 
 
+def _read_from_connect(port: serial.Serial, n: int) -> bytes:
+    """The first `n` bytes of data messages a client that has just opened the port gets (the
+    simulator starts it on a frame boundary), without the power-up BIT message a client there at
+    power-on hears first (KVH manual §3.4). The port must keep what came while it opened
+    (SerialKeepingInput): pyserial's flush at open could cut a frame the simulator had begun."""
+    data = _read_exact(port, n)
+    if data.startswith(POWER_UP_BIT):
+        data = data[len(POWER_UP_BIT):] + _read_exact(port, len(POWER_UP_BIT))
+    return data
+
+
 def _frames(data: bytes) -> np.ndarray:
     """Whole frames from a client that started on a frame boundary; every CRC checked."""
     assert data[:4] == kvh.HEADER
@@ -61,9 +72,9 @@ def _expected_status(axes: str) -> tuple[int, list[int], bool]:
 def test_imu_axes_status_bits_and_zero_fields(axes):
     bits, gyro_axes, acc = _expected_status(axes)
     with Simulator(SimConfig(seed=1, time_scale=20.0, imu_axes=axes, accel_enabled=False)) as ep:
-        port = serial.Serial(ep["imu"], 921600, timeout=1.0)
+        port = SerialKeepingInput(ep["imu"], 921600, timeout=1.0)
         try:
-            msgs = _frames(_read_exact(port, 36 * 400))
+            msgs = _frames(_read_from_connect(port, 36 * 400))
         finally:
             port.close()
     assert (msgs["status"] == bits).all()
@@ -98,11 +109,9 @@ def test_invalid_frames_match_the_truth_log_and_carry_garbage_only_where_bits_ar
     cfg = SimConfig(seed=5, time_scale=10.0, imu_axes=axes, accel_enabled=False, truth_log=str(truth),
                     faults=["imu-invalid-rate=0.02"])
     with Simulator(cfg) as ep:
-        port = serial.Serial(ep["imu"], 921600, timeout=1.0)
+        port = SerialKeepingInput(ep["imu"], 921600, timeout=1.0)
         try:
-            data = _read_exact(port, 36 * 3000)
-            if data.startswith(POWER_UP_BIT):  # a client there at power-on hears it first (KVH manual §3.4)
-                data = data[len(POWER_UP_BIT):] + _read_exact(port, len(POWER_UP_BIT))
+            data = _read_from_connect(port, 36 * 3000)
             port.write(b"=CONFIG,1\n=DR,500\n=CONFIG,0\n")  # =DR is answered in Configuration Mode only
             data += _read_exact(port, 36 * 3000 + 28)  # and the three echoes (§7)
         finally:
