@@ -97,6 +97,9 @@ class SimConfig:
     """How long each hold lasts, in HOST WALL-CLOCK ms; then the held bytes leave in one burst."""
     link_hold_jitter_s: float = 0.0
     """± uniform jitter on each hold period (device s, seeded)."""
+    client_stall_wall_s: float = 1.0
+    """How long (HOST WALL-CLOCK s) a connected IMU client may stop reading before bytes are dropped:
+    it sizes the IMU pty's backlog (a host-side UART overrun loses bytes when its reader stalls)."""
     # turntable (SMC100)
     stage_address: int = 1
     stage_power_on_deg: float | None = None
@@ -324,7 +327,10 @@ def check_imu_axes(cfg: SimConfig) -> None:
 
 
 def check_links(cfg: SimConfig) -> None:
-    """Latency and jitter >= 0 with jitter <= latency; a hold needs a period > 0 and a length > 0."""
+    """Latency and jitter >= 0 with jitter <= latency; a hold needs a period > 0 and a length > 0;
+    a client stall > 0 s."""
+    if not cfg.client_stall_wall_s > 0.0:
+        raise ConfigError(f"client_stall_wall_s = {cfg.client_stall_wall_s}: give a stall > 0 wall s")
     for dev in ("imu", "gnss"):
         lat, jit = getattr(cfg, f"{dev}_link_latency_ms"), getattr(cfg, f"{dev}_link_jitter_ms")
         if lat < 0.0 or jit < 0.0 or jit > lat:

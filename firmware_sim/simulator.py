@@ -53,8 +53,6 @@ TICK_DEVICE_S = 0.1
 """…and longest device time: above 20× the ticks come closer (0.83 ms of wall time at 120×), so
 that a sample waits for its tick no longer in device time than ~0.1 s — at a 5 ms tick a client's
 reply to a sample came 0.6 device s late at 120×, and a dwell's end reached the stage that late."""
-CLIENT_STALL_WALL_S = 1.0
-"""A connected IMU client may stop reading for this long (wall) before bytes are dropped."""
 CONNECT_GRACE_WALL_S = 0.05
 """A new IMU client gets its first frame this long (wall) after the IMU sees it: pyserial flushes
 its input right after opening, and a frame delivered before that flush would be lost unseen. The
@@ -440,7 +438,7 @@ class Simulator:
             temperature_c=cfg.imu_temperature_c, make_models=make_imu_models, faults=cfg.faults,
             fault_seed=streams[_STREAM_IMU_FAULTS],
             backlog_bytes=max(64 * 1024, int(36 * 1000 * cfg.time_scale
-                                             * (CLIENT_STALL_WALL_S + cfg.link_hold_ms / 1e3))),
+                                             * (cfg.client_stall_wall_s + cfg.link_hold_ms / 1e3))),
             connect_grace_s=CONNECT_GRACE_WALL_S * cfg.time_scale,
             on_event=self.truth.event if self.truth is not None else None,
             link=self._link("imu", streams[_STREAM_IMU_LINK]), invalid_seed=streams[_STREAM_IMU_INVALID],
@@ -491,7 +489,7 @@ class Simulator:
         cfg = self.config
         rate = cfg.imu_rate_hz if cfg.imu_rate_hz in (125, 250, 500, 1000, 2000) else 500
         gyro, accel = make_models(rate)
-        stall_s = CLIENT_STALL_WALL_S + cfg.link_hold_ms / 1e3
+        stall_s = cfg.client_stall_wall_s + cfg.link_hold_ms / 1e3
         backlog = max(64 * 1024, int(38 * rate * cfg.time_scale * stall_s))  # 38 B per 0x93 datagram
         return StimImu(self.world, gyro, accel, rate_hz=rate, lever_arm_b_m=cfg.imu_lever_arm_m,
                        faults=cfg.faults, fault_seed=streams[_STREAM_IMU_FAULTS],

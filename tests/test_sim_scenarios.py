@@ -226,25 +226,17 @@ SHIP_RATE_HZ = 1000
 SHIP_SECONDS = 24.0  # three roll periods, four pitch periods
 
 
-def _patched_stall(patch: pytest.MonkeyPatch, cfg: SimConfig, device_s: float) -> SimConfig:
-    """Let the IMU's client stop reading for the whole run (`device_s`) before bytes are dropped."""
-    import firmware_sim.simulator as simulator
-
-    patch.setattr(simulator, "CLIENT_STALL_WALL_S", simulator.CLIENT_STALL_WALL_S + device_s / cfg.time_scale)
-    return cfg
-
-
 @pytest.fixture(scope="module")
 def ship_run(tmp_path_factory):
     """The reference ship (nav grade), a pyserial client that opens the IMU at a random moment."""
     log_path = tmp_path_factory.mktemp("ship") / "truth.jsonl"
+    # the whole run fits the IMU's backlog (by default the simulator keeps 1 s of wall time for a
+    # client that stops reading): this reader shares its process with the simulator, and at load
+    # 5-10 on 2 cores it stalled longer and lost bytes — an overrun, which these tests are not about
     cfg = SimConfig(scenario="ship", seed=5, heading_deg=57.0, time_scale=10.0, truth_log=str(log_path),
-                    truth_rate_hz=SHIP_RATE_HZ)
+                    truth_rate_hz=SHIP_RATE_HZ, client_stall_wall_s=1.0 + SHIP_SECONDS / 10.0)
     n = int(SHIP_SECONDS * SHIP_RATE_HZ)
-    # the whole run fits the IMU's backlog (the simulator keeps 1 s of wall time for a client that
-    # stops reading): this reader shares its process with the simulator, and at load 5-10 on 2 cores
-    # it stalled longer and lost bytes — an overrun, which these tests are not about
-    with pytest.MonkeyPatch.context() as patch, Simulator(_patched_stall(patch, cfg, SHIP_SECONDS)) as ep:
+    with Simulator(cfg) as ep:
         time.sleep(random.Random(20261122).uniform(0.3, 1.2))  # some moment after the endpoints
         port = serial.Serial(ep["imu"], 921600)
         try:
