@@ -632,7 +632,8 @@ def main() -> int:
     p.add_argument("--find-timeout-s", type=float, default=300.0, help="wall limit per find run")
     p.add_argument("--gaps", metavar="SCALES", default=None,
                    help="only: one 8 × 60 s find at each scale (comma-separated, `auto` allowed) and its "
-                   "device-time gaps between dwells, wall time and losses")
+                   "device-time gaps between dwells, wall time and losses; each run's gaps are compared "
+                   "gap by gap with the first scale's run (give 10 first: 'as at 10×: k of n')")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--skip-find", action="store_true")
     p.add_argument("--profile", action="store_true",
