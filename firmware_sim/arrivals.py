@@ -22,24 +22,29 @@ import os
 import select
 import threading
 from collections.abc import Callable, Mapping
+from typing import Generic, TypeVar
 
 from firmware_sim.pty import PtyPort
+
+Owner = TypeVar("Owner")
 
 QUIET_RECHECK_S = 0.005
 """How often a hung-up port is looked at again (wall): a client that closes the port and opens it
 again is read at once, even if the loop never saw it gone (both within one of its ticks)."""
 
 
-class ArrivalStamper:
-    """Reads the watched ports as input arrives; `take()` returns it with the device time it came."""
+class ArrivalStamper(Generic[Owner]):
+    """Reads the watched ports as input arrives; `take()` returns it with the device time it came
+    and the port's owner (the device the loop hands it to)."""
 
     def __init__(self, now: Callable[[], float]) -> None:
         self._now = now
         self._lock = threading.Lock()
-        self._arrived: list[tuple[float, PtyPort, bytes]] = []
-        self._ports: dict[int, PtyPort] = {}
+        self._arrived: list[tuple[float, Owner, bytes]] = []
+        self._owners: dict[PtyPort, Owner] = {}
+        self._by_fd: dict[int, tuple[PtyPort, Owner]] = {}
         self._wake_r, self._wake_w = os.pipe()  # readable for the loop when something arrived
-        self._ctl_r, self._ctl_w = os.pipe()  # tells the thread: new ports to watch, or stop
+        self._ctl_r, self._ctl_w = os.pipe()  # wakes the thread: new ports to watch, or stop
         for fd in (self._wake_r, self._wake_w, self._ctl_r, self._ctl_w):
             os.set_blocking(fd, False)
         self._stopping = False
@@ -51,16 +56,18 @@ class ArrivalStamper:
         """Readable while stamped input waits for `take()` (the loop selects on it)."""
         return self._wake_r
 
-    def watch(self, ports: Mapping[int, PtyPort]) -> None:
-        """The ports to read (fd → port: those a client has open), given by the loop every tick;
-        the thread starts on a new set at once."""
-        if ports != self._ports:
-            self._ports = dict(ports)
+    def watch(self, owners: Mapping[PtyPort, Owner]) -> None:
+        """The ports to read (those a client has open) and whose input each is, given by the loop
+        every tick; the thread starts on a new set at once."""
+        if owners != self._owners:
+            self._owners = dict(owners)
+            self._by_fd = {port.master_fd: (port, owner) for port, owner in owners.items()}
             _poke(self._ctl_w)
 
-    def take(self) -> tuple[float, list[tuple[float, PtyPort, bytes]]]:
-        """The device time now, and every chunk stamped before it, in the order it came. Raises
-        what stopped the thread, if something did (the loop then fails, not goes deaf)."""
+    def take(self) -> tuple[float, list[tuple[float, Owner, bytes]]]:
+        """The device time now, and every chunk stamped before it (time, owner, bytes), in the
+        order it came. Raises what stopped the thread, if something did (the loop then fails, not
+        goes deaf)."""
         if self.error is not None:
             raise RuntimeError("the arrival thread stopped") from self.error
         _drain(self._wake_r)  # first: a chunk stamped after the take below pokes again
@@ -89,35 +96,33 @@ class ArrivalStamper:
 
     def _watch_ports(self) -> None:
         quiet: set[int] = set()  # hung up (no client): left out while it stays so
-        ports = self._ports
         while not self._stopping:
-            quiet = {fd for fd in quiet if not ports[fd].connected}  # a client may be back
-            fds = [fd for fd in ports if fd not in quiet]
+            by_fd = self._by_fd  # the loop's newest set (it pokes _ctl_r when it changes)
+            quiet = {fd for fd in quiet if fd in by_fd and not by_fd[fd][0].connected}
+            fds = [fd for fd in by_fd if fd not in quiet]
             try:
                 wait_s = QUIET_RECHECK_S if quiet else None
                 readable, _, _ = select.select([*fds, self._ctl_r], [], [], wait_s)
-            except OSError:  # a port was closed under us: read the loop's set again shortly
+            except OSError:  # a port was closed under us: the loop's next set leaves it out
                 readable = select.select([self._ctl_r], [], [], QUIET_RECHECK_S)[0]
-                ports, quiet = self._ports, set()
             if self._ctl_r in readable:
                 _drain(self._ctl_r)
-                ports, quiet = self._ports, set()
-                continue
-            if self._stamp(readable, ports, quiet):
+            elif readable and self._stamp(readable, by_fd, quiet):
                 _poke(self._wake_w)
 
-    def _stamp(self, readable: list[int], ports: Mapping[int, PtyPort], quiet: set[int]) -> bool:
+    def _stamp(self, readable: list[int], by_fd: Mapping[int, tuple[PtyPort, Owner]],
+               quiet: set[int]) -> bool:
         got = False
         with self._lock:
             t = self._now()
             for fd in readable:
-                port = ports[fd]
+                port, owner = by_fd[fd]
                 try:
                     data = port.read()
                 except OSError:  # closed under us (a device replaced its port): the loop says so next
                     data = b""
                 if data:
-                    self._arrived.append((t, port, data))
+                    self._arrived.append((t, owner, data))
                     got = True
                 elif not port.connected:
                     quiet.add(fd)

@@ -632,14 +632,11 @@ class Simulator:
         if not self.holds_for_client:
             self.clock.start()
             self._clock_running = True
-        stamper = ArrivalStamper(self.now)
-        owners: dict[PtyPort, Device] = {}  # every port a client has had open: input stamped
+        stamper: ArrivalStamper[Device] = ArrivalStamper(self.now)
         next_tick = time.monotonic()
         try:
             while not self._stop.is_set():
-                watched = {p: d for d in self.devices if (p := d.input_port()) is not None}
-                owners.update(watched)  # before the client left, it is still the device's
-                stamper.watch({p.master_fd: p for p in watched})
+                stamper.watch({p: d for d in self.devices if (p := d.input_port()) is not None})
                 backlogged = {p.fileno(): p for p in self._ports()
                               if p.pending and not p.closed and p.connected}
                 wait_s = max(0.0, next_tick - time.monotonic())
@@ -652,8 +649,8 @@ class Simulator:
                     self.clock.start()
                     self._clock_running = True
                 t, arrived = stamper.take()  # held: commands are answered at device time 0
-                for t_in, port, data in arrived:
-                    owners[port].on_input(data, t_in)
+                for t_in, device, data in arrived:
+                    device.on_input(data, t_in)
                 for device in self.devices:
                     if self._clock_running and self._device_may_run(device):
                         device.advance(t)

@@ -371,6 +371,11 @@ class Sequencer:
             self.imu.wait_device_s(self.limits.poll_s, self.limits.poll_s)
 
     def _move_once(self, target_deg: float) -> None:
+        """Command the move and wait for READY. The IMU samples from before the command are dropped
+        first, as for every move (the settle after it looks for this move's slew: after a stage fault
+        the rest since the faulted move is the host's fault handling, and on a loaded host a settle
+        once ended in it and the retried move fell into the dwell)."""
+        self.imu.discard_pending()
         self.turntable.start_move(target_deg)
         self._poll_ready(f"the move to {target_deg:g}°", self._move_deg)
 
@@ -394,10 +399,6 @@ class Sequencer:
             first = exc
         try:
             self.turntable.re_enable()
-            # the settle looks for the slew of this move, not of the one that faulted: in device time
-            # the rest between them is the host's fault handling, and once long enough (a loaded
-            # host) the settle ended in it and the retried move fell into the dwell
-            self.imu.discard_pending()
             self._move_once(target_deg)
         except StageFault as exc:
             self._stage_error(target_deg, 2, exc)
@@ -667,8 +668,6 @@ class Sequencer:
         target = self._plan[0]
         pin = self.run_cfg.plan in MOTION_KINDS and self._has_gyro_z()
         here = float(self.turntable.angle_deg()) if pin else target
-        if pin:
-            self.imu.discard_pending()  # what is left is from before the move command
         self._move(target)
         if not pin:
             return

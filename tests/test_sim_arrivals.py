@@ -62,7 +62,7 @@ def test_input_is_stamped_when_it_arrives_not_when_it_is_taken(ports) -> None:
     clock = SetClock()
     stamper = ArrivalStamper(clock)
     try:
-        stamper.watch({a.master_fd: a, b.master_fd: b})
+        stamper.watch({a: a, b: b})
         clock.t = 12.5
         client_a.write(b"1PA45\r\n")
         got = take_all(stamper, 7)
@@ -84,13 +84,13 @@ def test_a_port_is_read_only_while_it_is_watched(ports) -> None:
     clock = SetClock()
     stamper = ArrivalStamper(clock)
     try:
-        stamper.watch({a.master_fd: a})
+        stamper.watch({a: a})
         client_b.write(b"early\n")
         client_a.write(b"x\n")
         assert b"".join(d for _, _, d in take_all(stamper, 2)) == b"x\n"
         assert b.read() == b"early\n"  # b was never read by the stamper: its bytes still wait
         clock.t = 3.0
-        stamper.watch({a.master_fd: a, b.master_fd: b})
+        stamper.watch({a: a, b: b})
         client_b.write(b"late\n")
         arrived = take_all(stamper, 5)
     finally:
@@ -103,7 +103,7 @@ def test_a_client_that_leaves_does_not_keep_the_thread_busy(ports) -> None:
     (a, _), (client_a, _) = ports
     stamper = ArrivalStamper(SetClock())
     try:
-        stamper.watch({a.master_fd: a})
+        stamper.watch({a: a})
         client_a.close()
         time.sleep(0.3)
         t0 = os.times()
@@ -180,7 +180,7 @@ def test_a_client_that_closes_and_opens_the_port_again_is_read(ports) -> None:
     clock = SetClock()
     stamper = ArrivalStamper(clock)
     try:
-        stamper.watch({a.master_fd: a})
+        stamper.watch({a: a})
         client_a.close()
         deadline = time.monotonic() + WAIT_S
         while a.connected and time.monotonic() < deadline:
@@ -207,7 +207,7 @@ def test_what_stops_the_thread_reaches_the_loop(ports) -> None:
     a.read = broken
     stamper = ArrivalStamper(SetClock())
     try:
-        stamper.watch({a.master_fd: a})
+        stamper.watch({a: a})
         client_a.write(b"x")
         wait_readable(stamper.fileno())
         with pytest.raises(RuntimeError, match="arrival thread stopped"):

@@ -573,41 +573,49 @@ def _sample_child(time_scale: float, seed: int, period_s: float = 0.005, top: in
 # --------------------------------------------------------------------------------------------
 
 
+def _matching(run_gaps: list[int], reference: list[int]) -> int:
+    """How many of a run's gaps equal the reference run's, position by position."""
+    return sum(a == b for a, b in zip(run_gaps, reference, strict=False))
+
+
 def bench_gaps(scales: str, timeout_s: float, seed: int) -> list[Row]:
     """One find per scale: the gaps between dwells in device time (unchanged from the first scale
     listed, 10× say, while the host keeps up: counted gap by gap, same seed and plan), the host's
     share (before_move_s), the wall time, the losses."""
     rows = []
-    gaps: dict[str, list[float]] = {}
+    runs: dict[str, list[list[int]]] = {}  # each scale's runs' gaps [device s]
     walls: dict[str, list[float]] = {}
-    same: dict[str, list[int]] = {}
-    reference: tuple[str, list[int]] | None = None
+    reference: tuple[str, list[int]] | None = None  # the first run with gaps
     for text in (s.strip() for s in scales.split(",") if s.strip()):
         k = time_scale_arg(text)
+        key = _scale_text(k)
         r = run_find(k, timeout_s, seed)
         run_gaps = [round(g) for g in r.gaps_s or []]
         lost = "failed" if r.imu_lost is None else f"lost IMU {r.imu_lost}, accel {r.accel_lost}"
         note = f"{lost}; {r.gaps_note()}" + r.says()
-        if reference is None and run_gaps:
-            reference = (_scale_text(k), run_gaps)
-        elif reference is not None:
-            equal = sum(a == b for a, b in zip(run_gaps, reference[1], strict=False))
-            same.setdefault(_scale_text(k), [0, 0])
-            same[_scale_text(k)][0] += equal
-            same[_scale_text(k)][1] += len(reference[1])
-            note += f"; as at {reference[0]}×: {equal} of {len(reference[1])} gaps"
-        rows.append(Row(f"find 8 × 60 s at {_scale_text(k)}", f"{r.wall_s:.1f} s wall", note))
-        print(f"  … {_scale_text(k)}: {rows[-1].figure}, {rows[-1].note}", file=sys.stderr, flush=True)
-        gaps.setdefault(_scale_text(k), []).extend(run_gaps)
-        walls.setdefault(_scale_text(k), []).append(r.wall_s)
-    for key, g in gaps.items():
-        if len(walls[key]) > 1 and g:
-            values, counts = np.unique(g, return_counts=True)
-            spread = ", ".join(f"{v:.0f} s ×{c}" for v, c in zip(values, counts, strict=True))
-            as_ref = (f"; as at {reference[0]}×: {same[key][0]} of {same[key][1]}"
-                      if reference is not None and key in same else "")
-            rows.append(Row(f"gaps at {key}, {len(walls[key])} runs", f"median {np.median(g):.0f} s",
-                            f"{spread}{as_ref}; wall {min(walls[key]):.1f}–{max(walls[key]):.1f} s"))
+        if reference is None:
+            reference = (key, run_gaps) if run_gaps else None
+        else:
+            ref_key, ref_gaps = reference
+            note += f"; as at {ref_key}×: {_matching(run_gaps, ref_gaps)} of {len(ref_gaps)} gaps"
+        rows.append(Row(f"find 8 × 60 s at {key}", f"{r.wall_s:.1f} s wall", note))
+        print(f"  … {key}: {rows[-1].figure}, {rows[-1].note}", file=sys.stderr, flush=True)
+        runs.setdefault(key, []).append(run_gaps)
+        walls.setdefault(key, []).append(r.wall_s)
+    for key, gap_lists in runs.items():
+        g = [x for gaps in gap_lists for x in gaps]
+        if len(gap_lists) < 2 or not g:
+            continue
+        values, counts = np.unique(g, return_counts=True)
+        spread = ", ".join(f"{v:.0f} s ×{c}" for v, c in zip(values, counts, strict=True))
+        as_ref = ""
+        if reference is not None:
+            compared = gap_lists[1:] if key == reference[0] else gap_lists  # not the reference itself
+            if compared:
+                as_ref = (f"; as at {reference[0]}×: {sum(_matching(x, reference[1]) for x in compared)} of "
+                          f"{len(reference[1]) * len(compared)}")
+        rows.append(Row(f"gaps at {key}, {len(gap_lists)} runs", f"median {np.median(g):.0f} s",
+                        f"{spread}{as_ref}; wall {min(walls[key]):.1f}–{max(walls[key]):.1f} s"))
     return rows
 
 

@@ -104,7 +104,8 @@ def _position_tables(m: int) -> tuple[np.ndarray, int]:
     bytes, and the CRC of m zero bytes from init 0xFFFFFFFF. The CRC is affine in the message, so
     crc(row) = that constant ⊕ XOR_j T[j, row[j]]: one gather and one reduction for all rows."""
     tables = np.empty((m, 256), dtype=np.uint32)
-    tables[m - 1] = CRC_TABLE
+    if m:
+        tables[m - 1] = CRC_TABLE
     for j in range(m - 2, -1, -1):  # one zero byte more after position j
         nxt = tables[j + 1]
         tables[j] = (nxt << np.uint32(8)) ^ CRC_TABLE[nxt >> np.uint32(24)]
@@ -123,8 +124,6 @@ def crc32_mpeg2_rows(rows: np.ndarray) -> np.ndarray:
     if rows.ndim != 2:
         raise ValueError("rows must be a 2-D uint8 array [n_messages, n_bytes]")
     m = rows.shape[1]
-    if m == 0:
-        return np.full(rows.shape[0], 0xFFFFFFFF, dtype=np.uint32)
     if m not in _POSITION_TABLES:
         _POSITION_TABLES[m] = _position_tables(m)
     tables, zeros_crc = _POSITION_TABLES[m]

@@ -63,7 +63,8 @@ class StreamReader:
     device = "device"
     read_pace_below_bytes_s = 0.0
     """transport.ReadPacer's rate: under it the reader pauses 10 ms after each read (0: never).
-    A sample stream sets it; a GNSS receiver's few sentences a second are not worth the latency."""
+    SampleQueue sets it for the sample streams; a GNSS receiver's few sentences a second are not
+    worth the latency."""
 
     def __init__(self, port: str, timeout_s: float) -> None:
         self.port = port
@@ -141,6 +142,10 @@ class SampleQueue:
     `read`, under the reader's Condition `_cond`: `_pending`, chunks of (device indices, the model's
     samples), `_pending_n` samples in them, and `_newest_index`, the device index of the newest
     decoded."""
+
+    read_pace_below_bytes_s = 100_000.0
+    """StreamReader's ReadPacer rate for a sample stream: a KVH at 1 kHz is 36 kB/s, a STIM300 tens
+    of kB/s; a time-scaled stream above it is never paused."""
 
     port: str
     _cond: threading.Condition

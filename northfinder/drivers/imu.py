@@ -62,8 +62,6 @@ class Imu(SampleQueue, StreamReader):
     """A KVH format-A IMU on a pyserial URL; a context manager with a background reader."""
 
     device = DEVICE
-    read_pace_below_bytes_s = 100_000.0
-    """ReadPacer: 1 kHz of 36-byte frames is 36 kB/s; at 3× real time the pause stops."""
 
     def __init__(
         self,

@@ -187,8 +187,6 @@ class StimImu(SampleQueue, StreamReader, InertialStream):
     """A STIM in Normal Mode on a pyserial URL; a context manager with a background reader."""
 
     device = DEVICE
-    read_pace_below_bytes_s = 100_000.0
-    """transport.ReadPacer: a STIM300 at its rate is tens of kB/s; fast streams are not paused."""
 
     def __init__(self, port: str, *, baudrate: int = 921600, raw_log: str | Path | None = None,
                  timeout_s: float = 5.0) -> None:
