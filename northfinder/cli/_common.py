@@ -11,6 +11,7 @@ import argparse
 import math
 import os
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -194,3 +195,18 @@ def finish_and_print(
         file=sys.stderr,
     )
     return 0
+
+
+def preload_matplotlib() -> None:
+    """Import matplotlib (a second or two) in a thread while the devices or the simulator start, so
+    the report does not wait for it. Not a daemon: a run that ends at once (a wrong port) lets the
+    import finish before the interpreter shuts down — a daemon thread still inside it then crashed
+    the process at exit ("Fatal Python error: PyThreadState_Get … finalizing", once in CI)."""
+    threading.Thread(target=_import_matplotlib, name="preload-matplotlib").start()
+
+
+def _import_matplotlib() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot  # noqa: F401

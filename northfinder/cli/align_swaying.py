@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import threading
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -150,13 +149,6 @@ def default_out() -> Path:
     return base.default_out(sr.KIND)
 
 
-def _preload_matplotlib() -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot  # noqa: F401
-
-
 def _simulated_window(
     args: argparse.Namespace, rd: RunDir, duration: float, sway: dict[str, Any], settings: dict[str, Any]
 ) -> Any:
@@ -208,7 +200,7 @@ def run(args: argparse.Namespace) -> int:
     rd = RunDir.new_run(args.out or default_out())
     t_wall = time.monotonic()
     # matplotlib takes a second or two to import: do it while the simulator or the IMU port starts
-    threading.Thread(target=_preload_matplotlib, name="preload-matplotlib", daemon=True).start()
+    _common.preload_matplotlib()
     method = args.method or (bench.swaying if bench is not None else config.SwayingConfig()).method
     settings: dict[str, Any] = {"method": method, "max_sway_period_s": period}
     with base.removed_if_unstarted(rd, sr.OWN_FILES):  # a failed start leaves no empty directory

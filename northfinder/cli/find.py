@@ -16,11 +16,10 @@ import argparse
 import shutil
 import sys
 import textwrap
-import threading
 import time
 
 from northfinder import config as bench
-from northfinder.cli._common import add_db_flag, heading_deg
+from northfinder.cli._common import add_db_flag, heading_deg, preload_matplotlib
 from northfinder.cli._summary import ProgressView, print_summary
 from northfinder.runs import find as find_run
 from northfinder.runs.find_pace import pace_line, time_scale_arg
@@ -141,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
     t_wall = time.monotonic()
     if not args.no_report:
         # matplotlib takes a second or two to import: do it while the devices are opened and homed.
-        threading.Thread(target=_preload_matplotlib, name="preload-matplotlib", daemon=True).start()
+        preload_matplotlib()
     result, rundir, label = find_run.run_find(request(args), progress=ProgressView)
     print_summary(result, run_dir=rundir.path)
     events = rundir.events()
