@@ -14,6 +14,7 @@ the tilt factor of docs/estimators.md), never from what a run printed.
 
 from __future__ import annotations
 
+import gc
 import json
 import subprocess
 import uuid
@@ -28,6 +29,7 @@ from northfinder.estimators.limits import noise_limit_heading_std_deg
 from northfinder.rotations import tilt_and_azimuth
 from northfinder.rundir import RESULT, RunDir, jsonable
 from northfinder.runs.find import replay
+from northfinder.sequencer import Sequencer
 from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 
 pytestmark = pytest.mark.slow
@@ -214,8 +216,17 @@ def _in_process_run(tmp_path: Path, interface: str, channel: str, plan: str = "p
     return result
 
 
-def test_find_with_the_accelerometer_on_a_virtual_bus_in_one_process(tmp_path):
+def test_find_with_the_accelerometer_on_a_virtual_bus_in_one_process(tmp_path, monkeypatch):
+    """…and its sequence runs with the heap frozen (runs.base.heap_frozen: no full collection stops
+    the reaction to a dwell's end), unfrozen once it is over."""
+    gc.unfreeze()  # whatever an earlier test in this process froze
+    frozen_at_start: list[int] = []
+    run = Sequencer.run
+    monkeypatch.setattr(Sequencer, "run",
+                        lambda self: frozen_at_start.append(gc.get_freeze_count()) or run(self))
     _in_process_run(tmp_path, "virtual", f"northfinder-e2e-{uuid.uuid4().hex[:8]}")
+    assert frozen_at_start and frozen_at_start[0] > 1000  # the interpreter's and the run's objects
+    assert gc.get_freeze_count() == 0
 
 
 def test_sweep_find_turns_whole_revolutions_both_ways_and_fits_every_sample(tmp_path):

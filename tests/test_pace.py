@@ -8,6 +8,7 @@ so no test names them.
 
 from __future__ import annotations
 
+import gc
 import json
 import subprocess
 import sys
@@ -17,6 +18,7 @@ from helpers import read_events, run_cli, subprocess_env
 
 from firmware_sim import clock as sim_clock
 from northfinder.runs import find_pace as P
+from northfinder.runs.base import heap_frozen
 from northfinder.runs.find import pace_note
 
 
@@ -137,3 +139,14 @@ def test_find_time_scale_auto_paces_by_its_own_events_and_replays(tmp_path):
     replayed = run_cli("replay", str(out), cwd=tmp_path)
     assert replayed.returncode == 0, replayed.stderr
     assert "identical" in replayed.stdout
+
+
+def test_heap_frozen_freezes_what_is_there_and_unfreezes_after_a_failure_too():
+    """What lives before the body is out of the collector's reach in it (a full collection would
+    stop the run's threads); afterwards everything is collectable again, however the body ended."""
+    gc.unfreeze()
+    held = [[k] for k in range(5000)]  # containers: tracked by the collector
+    with pytest.raises(RuntimeError), heap_frozen():
+        assert gc.get_freeze_count() >= len(held)
+        raise RuntimeError("the body failed")
+    assert gc.get_freeze_count() == 0

@@ -155,9 +155,3 @@ def run(args: argparse.Namespace) -> int:
     print(f"wall time {time.monotonic() - t_wall:.1f} s ({label})", file=sys.stderr)
     return 0
 
-
-def _preload_matplotlib() -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot  # noqa: F401

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.ma  # noqa: F401 - np.median imports it on its first call (~7 ms, the GIL held): not mid-run
 
 from northfinder.constants import DPH
 

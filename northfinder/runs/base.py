@@ -10,6 +10,7 @@ knows its view: the CLI hands it the hooks and prints the summary itself.
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import math
 import signal
@@ -93,6 +94,24 @@ def guard(device: str, port: str, factory: Callable[[], Any]) -> Iterator[Any]:
         yield entered
     finally:
         obj.__exit__(*sys.exc_info())
+
+
+@contextlib.contextmanager
+def heap_frozen() -> Iterator[None]:
+    """Run the body with what the process holds so far out of the cyclic collector's reach.
+
+    A full collection walks every object and stops every thread while it does: 50–60 ms once
+    matplotlib is imported (the report's preload), which is 6–7 device s at 120× — one gap between
+    dwells stretched by that, the stage idle while the IMU ran on unseen. So the heap is collected
+    once before the body and frozen (gc.freeze: later collections skip it; they walk only what the
+    body makes, a few thousand objects), and unfrozen after, so garbage cycles among the frozen
+    objects are collected again. Nesting is not supported: the inner exit unfreezes."""
+    gc.collect()
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -36,7 +36,7 @@ from northfinder.estimators.plan import MOTION_KINDS
 from northfinder.history import record_or_warn
 from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session_file
 from northfinder.runkinds import Replayed
-from northfinder.runs.base import ProgressView, RunContext, default_out, guard, now_utc
+from northfinder.runs.base import ProgressView, RunContext, default_out, guard, heap_frozen, now_utc
 from northfinder.runs.base import discard_unstarted as base_discard_unstarted
 from northfinder.runs.find_motion_feed import (
     FedEventLog,
@@ -358,7 +358,8 @@ def _sequence(ctx: RunContext, devices: tuple[Any, Any, Any], stop: StopFlag, pr
         seq = Sequencer(tt, imu, acc, cfg.run, limits, allow_home=cfg.turntable.allow_home, rundir=events,
                         on_progress=on_progress, stop_flag=stop, skip=skip or set())
         try:
-            return previous + seq.run()
+            with heap_frozen():  # no full collection stalls the reaction to a dwell's end
+                return previous + seq.run()
         except Interrupted as intr:
             intr.positions = previous + intr.positions
             aborted(ctx, intr)
