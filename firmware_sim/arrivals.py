@@ -12,7 +12,10 @@ one's. The loop hands each chunk to its device with its own time (Device.on_inpu
 
 How soon the thread runs after its bytes arrive depends on the interpreter's switch interval while
 the loop holds the GIL: the firmware-sim command sets it short (firmware_sim.cli); a simulator
-started inside another program keeps that program's setting and stamps no later than before.
+started inside another program keeps that program's setting and stamps no later than before. And it
+needs a CPU: on a busy 2-core host a woken thread waited up to ~6 ms for one (0.7 device s at 120×).
+So the loop also reads and stamps what has come between its devices itself (`poll`): a command then
+waits at most for the device the loop was working on (the IMU's tick, ~0.5 ms at 120×).
 """
 
 from __future__ import annotations
@@ -75,6 +78,21 @@ class ArrivalStamper(Generic[Owner]):
             t = self._now()
             arrived, self._arrived = self._arrived, []
         return t, arrived
+
+    def poll(self) -> None:
+        """Read and stamp what has arrived, from the calling thread, without waiting: the loop calls
+        this between its devices, so input that comes while it works is stamped then even when the
+        thread waits for a CPU (a busy 2-core host can keep it off one for milliseconds)."""
+        by_fd = self._by_fd
+        fds = [fd for fd, (port, _owner) in by_fd.items() if port.connected]
+        if not fds:
+            return
+        try:
+            readable = select.select(fds, [], [], 0)[0]
+        except OSError:  # a port closed under us: the thread and the loop's next set see to it
+            return
+        if readable and self._stamp(readable, by_fd, set()):
+            _poke(self._wake_w)
 
     def close(self) -> None:
         """End the thread, then close its pipes. Idempotent."""

@@ -235,3 +235,37 @@ def test_two_threads_may_ask_whether_a_client_is_there(ports) -> None:
     for t in threads:
         t.join()
     assert not errors, errors[0]
+
+
+def _stop_thread(stamper: ArrivalStamper) -> None:
+    """End the stamper's thread (its pipes stay open): as if a busy host kept it off every CPU."""
+    stamper._stopping = True
+    os.write(stamper._ctl_w, b"\0")
+    stamper._thread.join(WAIT_S)
+    assert not stamper._thread.is_alive()
+
+
+def test_the_loop_stamps_what_came_while_the_thread_could_not_run(ports) -> None:
+    """poll(): the loop reads and stamps the input itself between its devices, so a thread that
+    waits for a CPU (milliseconds on a busy 2-core host, tenths of a device second at 120×) no
+    longer decides when a command took effect."""
+    (a, _b), (client_a, _client_b) = ports
+    clock = SetClock()
+    stamper = ArrivalStamper(clock)
+    try:
+        stamper.watch({a: a})
+        _stop_thread(stamper)
+        clock.t = 3.25
+        client_a.write(b"1PA45\r\n")
+        got: list[tuple[float, PtyPort, bytes]] = []
+        deadline = time.monotonic() + WAIT_S
+        while sum(len(d) for _, _, d in got) < 7 and time.monotonic() < deadline:
+            stamper.poll()
+            got += stamper.take()[1]
+            time.sleep(0.001)
+        clock.t = 4.0
+        assert stamper.take()[1] == []
+    finally:
+        stamper.close()
+    assert [(ts, port) for ts, port, _ in got] == [(3.25, a)] * len(got)
+    assert b"".join(d for _, _, d in got) == b"1PA45\r\n"
