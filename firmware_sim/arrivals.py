@@ -130,9 +130,8 @@ class ArrivalStamper(Generic[Owner]):
 
     def _stamp(self, readable: list[int], by_fd: Mapping[int, tuple[PtyPort, Owner]],
                quiet: set[int]) -> bool:
-        got = False
+        chunks: list[tuple[Owner, bytes]] = []
         with self._lock:
-            t = self._now()
             for fd in readable:
                 port, owner = by_fd[fd]
                 try:
@@ -140,11 +139,13 @@ class ArrivalStamper(Generic[Owner]):
                 except OSError:  # closed under us (a device replaced its port): the loop says so next
                     data = b""
                 if data:
-                    self._arrived.append((t, owner, data))
-                    got = True
+                    chunks.append((owner, data))
                 elif not port.connected:
                     quiet.add(fd)
-        return got
+            # the clock after the reads: a byte that came while they ran is not stamped before it came
+            t = self._now()
+            self._arrived += [(t, owner, data) for owner, data in chunks]
+        return bool(chunks)
 
 
 def _poke(fd: int) -> None:

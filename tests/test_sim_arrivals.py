@@ -269,3 +269,62 @@ def test_the_loop_stamps_what_came_while_the_thread_could_not_run(ports) -> None
         stamper.close()
     assert [(ts, port) for ts, port, _ in got] == [(3.25, a)] * len(got)
     assert b"".join(d for _, _, d in got) == b"1PA45\r\n"
+
+
+class PipePort:
+    """A port whose client is a pipe (its bytes are readable the moment they are written)."""
+
+    def __init__(self) -> None:
+        self.master_fd, self.client_fd = os.pipe()
+        os.set_blocking(self.master_fd, False)
+        self.connected = True
+
+    def read(self) -> bytes:
+        try:
+            return os.read(self.master_fd, 65536)
+        except BlockingIOError:
+            return b""
+
+    def close(self) -> None:
+        os.close(self.master_fd)
+        os.close(self.client_fd)
+
+
+class BytesDuringTheReading:
+    """A device clock whose first reading lets the client's next bytes in right after it: they came
+    after that device time, so no stamp of theirs may be as early."""
+
+    def __init__(self, port: PipePort) -> None:
+        self.port, self.t, self.wrote_at = port, 0.0, None
+
+    def __call__(self) -> float:
+        self.t += 1.0
+        if self.wrote_at is None:
+            self.wrote_at = self.t
+            os.write(self.port.client_fd, b"1TP\r\n")
+        return self.t
+
+
+def test_bytes_that_come_while_a_chunk_is_read_are_not_stamped_before_they_came() -> None:
+    """The stamp is read after the ports are: bytes that land between the clock's reading and the
+    read would otherwise carry a time from before they came (an in-process client that asked for
+    the table angle got one from before its question, once in a serial run of the suite)."""
+    port = PipePort()
+    clock = BytesDuringTheReading(port)
+    stamper = ArrivalStamper(clock)
+    try:
+        _stop_thread(stamper)
+        stamper.watch({port: port})
+        os.write(port.client_fd, b"1TS\r\n")
+        got: list[tuple[float, PipePort, bytes]] = []
+        deadline = time.monotonic() + WAIT_S
+        while sum(len(d) for _, _, d in got) < 10 and time.monotonic() < deadline:
+            stamper.poll()
+            got += stamper.take()[1]
+    finally:
+        stamper.close()
+        port.close()
+    assert b"".join(d for _, _, d in got) == b"1TS\r\n1TP\r\n"
+    assert clock.wrote_at is not None
+    late = [t for t, _, d in got if b"TP" in d]
+    assert late and min(late) > clock.wrote_at
