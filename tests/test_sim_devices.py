@@ -291,6 +291,7 @@ def test_kvh_configuration_mode(bench):
         assert port.read_until(b"CONFIG,1\r\n").endswith(b"CONFIG,1\r\n")  # the echo (manual §7)
         _read_quiet(port)  # what was already on its way
         port.write(b"?DR\n")
+        port.timeout = 5.0  # (_read_quiet left 0.3 s: a loaded CI host once took longer to answer)
         assert port.read_until(b"DR,1000\r\n").endswith(b"DR,1000\r\n")
         assert _read_quiet(port, 0.3) == b""  # 3 s of device time: configuration mode sends no data
         for line in (b"=DR,100\n", b"=ROTFMT,RATE\n", b"=ROTUNITS,DEG\n", b"=DR,333\n", b"=ROTFMT,FOO\n",
