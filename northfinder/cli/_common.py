@@ -8,7 +8,6 @@ through them) import it, so no subcommand module imports another.
 from __future__ import annotations
 
 import argparse
-import gc
 import math
 import os
 import sys
@@ -211,7 +210,3 @@ def _import_matplotlib() -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot  # noqa: F401
-
-    # its ~10⁵ objects live as long as the process: frozen, no collection walks them again (one that
-    # did would stop every thread for tens of ms, in a measurement when the import ends inside one)
-    gc.freeze()
