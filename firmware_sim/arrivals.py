@@ -14,8 +14,8 @@ How soon the thread runs after its bytes arrive depends on the interpreter's swi
 the loop holds the GIL: the firmware-sim command sets it short (firmware_sim.cli); a simulator
 started inside another program keeps that program's setting and stamps no later than before. And it
 needs a CPU: on a busy 2-core host a woken thread waited up to ~6 ms for one (0.7 device s at 120×).
-So the loop also reads and stamps what has come between its devices itself (`poll`): a command then
-waits at most for the device the loop was working on (the IMU's tick, ~0.5 ms at 120×).
+So the loop also reads and stamps what has come itself once its devices have worked (`poll`): a
+command then waits at most for one tick's work (mostly the IMU's, ~0.5 ms at 120×).
 """
 
 from __future__ import annotations
@@ -81,8 +81,8 @@ class ArrivalStamper(Generic[Owner]):
 
     def poll(self) -> None:
         """Read and stamp what has arrived, from the calling thread, without waiting: the loop calls
-        this between its devices, so input that comes while it works is stamped then even when the
-        thread waits for a CPU (a busy 2-core host can keep it off one for milliseconds)."""
+        this after its devices' work each tick, so input that came meanwhile is stamped then even
+        when the thread waits for a CPU (a busy 2-core host can keep it off one for milliseconds)."""
         by_fd = self._by_fd
         fds = [fd for fd, (port, _owner) in by_fd.items() if port.connected]
         if not fds:

@@ -654,7 +654,7 @@ class Simulator:
                 for device in self.devices:
                     if self._clock_running and self._device_may_run(device):
                         device.advance(t)
-                        stamper.poll()  # what came meanwhile is stamped now, not when the thread runs
+                stamper.poll()  # what came during the devices' work is stamped now, not when the thread runs
                 for port in self._ports():
                     port.flush()
                 self.ticks += 1
