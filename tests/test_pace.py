@@ -150,3 +150,33 @@ def test_heap_frozen_freezes_what_is_there_and_unfreezes_after_a_failure_too():
         assert gc.get_freeze_count() >= len(held)
         raise RuntimeError("the body failed")
     assert gc.get_freeze_count() == 0
+
+
+def test_find_imports_every_device_model_before_it_opens_the_first_device(monkeypatch):
+    """A module imported while the IMU streams holds the interpreter for tens of ms (the CAN
+    accelerometer's: canopen, cantools) and the IMU reader falls behind by that times the time
+    scale; so open_bench imports the three models' modules first."""
+    from northfinder.config import BenchConfig
+    from northfinder.devices import registry
+    from northfinder.runs.find import open_bench
+
+    seen: list[set[str]] = []
+
+    def first_open(role, *args, **kwargs):
+        seen.append(set(registry._loaded))
+        raise RuntimeError("stop at the first open")
+
+    monkeypatch.setattr(registry, "_loaded", {})
+    monkeypatch.setattr(registry, "open_device", first_open)
+    cfg = BenchConfig(source="test")
+    with pytest.raises(RuntimeError, match="first open"), open_bench(cfg, None):
+        pass
+    assert {key.split("/")[0] for key in seen[0]} == {"turntable", "imu", "accelerometer"}
+
+
+def test_the_find_command_imports_its_live_view_with_the_command():
+    """rich.progress takes ~50 ms to import: not when the view opens, its devices streaming."""
+    code = "import sys, northfinder.cli.find; print('rich.progress' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=subprocess_env(),
+                         timeout=60, check=True)
+    assert out.stdout.strip() == "True"

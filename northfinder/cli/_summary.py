@@ -11,6 +11,12 @@ import math
 from pathlib import Path
 from typing import Any
 
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, TextColumn, TimeElapsedColumn
+from rich.progress import Progress as BarProgress
+from rich.table import Table
+
 from northfinder.cli._tables import print_fitted
 from northfinder.constants import wrap_deg_180
 from northfinder.sequencer import Progress
@@ -18,8 +24,6 @@ from northfinder.sequencer import Progress
 
 def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | None = None) -> None:
     """The rich summary table: heading ± σ, tilt, every method, positions, truth and error."""
-    from rich.console import Console
-
     if console is None:
         console = Console()
         if not console.is_terminal:  # piped or captured: do not squeeze the tables into 80 columns
@@ -34,8 +38,6 @@ def print_summary(result: dict[str, Any], console: Any = None, run_dir: Path | N
 
 def print_positions(positions: list[dict[str, Any]], console: Any = None) -> None:
     """The positions table alone (a partial run with too few positions for a heading)."""
-    from rich.console import Console
-
     if console is None:
         console = Console()
         if not console.is_terminal:
@@ -45,8 +47,6 @@ def print_positions(positions: list[dict[str, Any]], console: Any = None) -> Non
 
 def _head_table(result: dict[str, Any]) -> Any:
     """Heading ± σ, tilt, latitude, device time; truth and error of a simulated run."""
-    from rich.table import Table
-
     t = result["tilt"]
     head = Table(title="northfinder result", show_header=False, box=None)
     head.add_row(
@@ -112,9 +112,6 @@ def _plan_rows(result: dict[str, Any]) -> list[tuple[str, str]]:
 
 def _methods_table(result: dict[str, Any]) -> Any:
     """Every method's heading (and its error against the truth of a simulated run)."""
-    from rich.markup import escape
-    from rich.table import Table
-
     methods = Table(title="every method (* = the result)")
     methods.add_column("method")
     methods.add_column(escape("heading [deg]"), justify="right")
@@ -166,7 +163,6 @@ def _print_faults(faults: dict[str, Any] | None, console: Any) -> None:
     """What went wrong and what was done: lost samples, re-measured positions, stage errors, EMCY."""
     if not faults:
         return
-    from rich.markup import escape
 
     imu, acc = faults["imu"], faults["accel"]
     lines = [
@@ -206,11 +202,7 @@ NARROW_COLUMNS = 120
 
 class ProgressView:
     """rich live progress: position k of n, dwell in device time, live gyro mean and σ."""
-
     def __init__(self, n: int, dwell_s: float, enabled: bool = True):
-        from rich.console import Console
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
         self.console = Console(stderr=True)
         self.enabled = enabled
         self.plain = enabled and not self.console.is_terminal
@@ -218,7 +210,7 @@ class ProgressView:
         self._last_dwell: Progress | None = None
         self.narrow = self.console.width < NARROW_COLUMNS
         """Below NARROW_COLUMNS: a short bar and the dwell's numbers without words, so that no line is cut."""
-        self.progress = Progress(
+        self.progress = BarProgress(
             TextColumn("{task.description}"),
             BarColumn(bar_width=8 if self.narrow else 40),
             TextColumn("{task.fields[info]}"),

@@ -245,6 +245,8 @@ def open_bench(
     adapter that is a pty and needs no 2 s reset wait); `[accelerometer] bus_options` win.
     """
     a, t = cfg.accelerometer, cfg.turntable
+    for role, section in (("turntable", t), ("imu", cfg.imu), ("accelerometer", a)):
+        registry.spec(role, registry.model_of(section, role))  # imported now, not while the IMU streams
     with contextlib.ExitStack() as stack:
         tt = stack.enter_context(guard("turntable", t.port, lambda: registry.open_device(
             "turntable", t, rundir.transcript_path if rundir else None)))
