@@ -96,17 +96,26 @@ def guard(device: str, port: str, factory: Callable[[], Any]) -> Iterator[Any]:
         obj.__exit__(*sys.exc_info())
 
 
+def collect_before_streaming() -> None:
+    """A full collection before the devices open, so :func:`heap_frozen` freezes little garbage: at
+    a find's start it took 64 ms (47 k objects; 165 ms with the report's matplotlib), 8–20 device s
+    at 120× of an IMU stream the reader then had to catch up — and the tilt sensor's start, noted
+    against the newest IMU index meanwhile, placed its dwell that much late."""
+    gc.collect()
+
+
 @contextlib.contextmanager
 def heap_frozen() -> Iterator[None]:
     """Run the body with what the process holds so far out of the cyclic collector's reach.
 
     A full collection walks every object and stops every thread while it does: 50–60 ms once
     matplotlib is imported (the report's preload), which is 6–7 device s at 120× — one gap between
-    dwells stretched by that, the stage idle while the IMU ran on unseen. So the heap is collected
-    once before the body and frozen (gc.freeze: later collections skip it; they walk only what the
-    body makes, a few thousand objects), and unfrozen after, so garbage cycles among the frozen
-    objects are collected again. Nesting is not supported: the inner exit unfreezes."""
-    gc.collect()
+    dwells stretched by that, the stage idle while the IMU ran on unseen. So the heap is frozen
+    before the body (gc.freeze: later collections skip it; they walk only what the body makes, a few
+    thousand objects), and unfrozen after, so garbage cycles among the frozen objects are collected
+    again. Not collected here: the devices stream by now, and a collection is that same stall
+    (:func:`collect_before_streaming` does it before they open). Nesting is not supported: the
+    inner exit unfreezes."""
     gc.freeze()
     try:
         yield

@@ -36,7 +36,15 @@ from northfinder.estimators.plan import MOTION_KINDS
 from northfinder.history import record_or_warn
 from northfinder.rundir import CAN_LOG, CONFIG, EVENTS, IMU_RAW, RunDir, session_file
 from northfinder.runkinds import Replayed
-from northfinder.runs.base import ProgressView, RunContext, default_out, guard, heap_frozen, now_utc
+from northfinder.runs.base import (
+    ProgressView,
+    RunContext,
+    collect_before_streaming,
+    default_out,
+    guard,
+    heap_frozen,
+    now_utc,
+)
 from northfinder.runs.base import discard_unstarted as base_discard_unstarted
 from northfinder.runs.find_motion_feed import (
     FedEventLog,
@@ -247,6 +255,7 @@ def open_bench(
     a, t = cfg.accelerometer, cfg.turntable
     for role, section in (("turntable", t), ("imu", cfg.imu), ("accelerometer", a)):
         registry.spec(role, registry.model_of(section, role))  # imported now, not while the IMU streams
+    collect_before_streaming()
     with contextlib.ExitStack() as stack:
         tt = stack.enter_context(guard("turntable", t.port, lambda: registry.open_device(
             "turntable", t, rundir.transcript_path if rundir else None)))
