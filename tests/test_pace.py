@@ -141,37 +141,46 @@ def test_find_time_scale_auto_paces_by_its_own_events_and_replays(tmp_path):
     assert "identical" in replayed.stdout
 
 
-def test_heap_frozen_freezes_what_is_there_and_unfreezes_after_a_failure_too():
+def test_heap_frozen_freezes_what_is_there_and_unfreezes_after_a_failure_too(monkeypatch):
     """What lives before the body is out of the collector's reach in it (a full collection would
-    stop the run's threads); afterwards everything is collectable again, however the body ended."""
+    stop the run's threads); afterwards everything is collectable again, however the body ended.
+    It does not collect first: by then the devices stream (collect_before_streaming does)."""
+    collections: list[int] = []
+    collect = gc.collect
+    monkeypatch.setattr(gc, "collect", lambda *a: collections.append(1) or collect(*a))
     gc.unfreeze()
     held = [[k] for k in range(5000)]  # containers: tracked by the collector
     with pytest.raises(RuntimeError), heap_frozen():
         assert gc.get_freeze_count() >= len(held)
         raise RuntimeError("the body failed")
     assert gc.get_freeze_count() == 0
+    assert not collections
 
 
-def test_find_imports_every_device_model_before_it_opens_the_first_device(monkeypatch):
-    """A module imported while the IMU streams holds the interpreter for tens of ms (the CAN
-    accelerometer's: canopen, cantools) and the IMU reader falls behind by that times the time
-    scale; so open_bench imports the three models' modules first."""
+def test_find_imports_every_device_model_and_collects_before_it_opens_the_first_device(monkeypatch):
+    """A module imported, or a full collection, while the IMU streams holds the interpreter for tens
+    of ms (the CAN accelerometer's modules: canopen, cantools; a collection: 64 ms) and the IMU
+    reader falls behind by that times the time scale; so open_bench does both first."""
     from northfinder.config import BenchConfig
     from northfinder.devices import registry
     from northfinder.runs.find import open_bench
 
     seen: list[set[str]] = []
+    collections: list[int] = []
 
     def first_open(role, *args, **kwargs):
         seen.append(set(registry._loaded))
         raise RuntimeError("stop at the first open")
 
+    collect = gc.collect
+    monkeypatch.setattr(gc, "collect", lambda *a: collections.append(1) or collect(*a))
     monkeypatch.setattr(registry, "_loaded", {})
     monkeypatch.setattr(registry, "open_device", first_open)
     cfg = BenchConfig(source="test")
     with pytest.raises(RuntimeError, match="first open"), open_bench(cfg, None):
         pass
     assert {key.split("/")[0] for key in seen[0]} == {"turntable", "imu", "accelerometer"}
+    assert collections, "the heap is collected before the devices stream (heap_frozen does not)"
 
 
 def test_the_find_command_imports_its_live_view_with_the_command():
