@@ -42,6 +42,18 @@ class WireEnd(can.BusABC):
         super().shutdown()
 
 
+def arrival_s(bus: can.BusABC, msg: can.Message, earliest_s: float, now_s: float) -> float:
+    """The device time a frame received on `bus` came in, within [earliest_s, now_s] (the last
+    frame's time and the tick's): on a :func:`wire` its `timestamp`, which the slcan adapter set to
+    the device time the frame's line arrived (SlcanAdapter.on_input), so that a node acts on a
+    command when it came in, as a real one does, not at the tick that hands it on (up to 0.1 device
+    s later at 120×: an NMT stop then took effect after a move command sent after it). On any
+    other bus (virtual, socketcan: wall-clock stamps) `now_s`."""
+    if isinstance(bus, WireEnd):
+        return min(max(float(msg.timestamp), earliest_s), now_s)
+    return now_s
+
+
 def wire(channel: str) -> tuple[WireEnd, WireEnd]:
     """Two bus ends joined back to back: (the node's, the adapter's)."""
     a_to_b: deque[can.Message] = deque()

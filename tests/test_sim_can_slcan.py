@@ -433,3 +433,39 @@ def test_the_bench_loop_puts_what_the_node_sends_in_a_tick_on_the_wire_in_that_t
             port.close()
     finally:
         sim._close_all()
+
+
+def test_a_node_on_the_wire_acts_on_an_nmt_stop_when_its_line_came_in_not_at_the_next_tick():
+    """The adapter stamps a client's frame with the device time its line arrived, and the node on
+    firmware_sim's wire acts on it then (can_wire.arrival_s): a stop in at 1.005 s, handed on by
+    the tick at 1.1 s, ends the TPDOs at the sample due by 1.005 s (none of 1.01…1.1 s), as a real
+    node does — at a tick's time the sensor sent on while the table, moved by a command sent after
+    the stop, had begun to turn. On a python-can bus (wall-clock stamps) the tick's time stands."""
+    from firmware_sim.can_wire import arrival_s, wire
+
+    node_bus, adapter_bus = wire("arrival-test")
+    adapter = SlcanAdapter(adapter_bus)
+    node = CanAccelNode(node_bus, StandInWorld(), PerfectAccel(), node_id=NODE, rate_hz=100.0)
+    try:
+        adapter.on_input(b"S6\rO\r", 0.0)
+        node.advance(0.0)  # power-on: boot-up, pre-operational
+        adapter.on_input(b"t000201%02X\r" % NODE, 0.0)  # NMT start
+        node.advance(1.0)
+        tpdo_ids = {0x180 + NODE, 0x280 + NODE}
+        while adapter_bus.recv(timeout=0) is not None:
+            pass
+        adapter.on_input(b"t000202%02X\r" % NODE, 1.005)  # NMT stop, in at 1.005 s
+        node.advance(1.1)
+        after = [m for m in iter(lambda: adapter_bus.recv(timeout=0), None) if m.arbitration_id in tpdo_ids]
+        assert after == []
+    finally:
+        node.close()
+        adapter.close()
+        node_bus.shutdown()
+        adapter_bus.shutdown()
+    other = can.Message(arbitration_id=0, data=b"\x02\x10", timestamp=1.7e9)
+    virtual = can.Bus(interface="virtual", channel=f"arrival-{os.getpid()}")
+    try:
+        assert arrival_s(virtual, other, 1.0, 1.1) == 1.1
+    finally:
+        virtual.shutdown()

@@ -35,6 +35,7 @@ from typing import Any, Protocol
 import can
 import numpy as np
 
+from firmware_sim.can_wire import arrival_s
 from firmware_sim.devices.base import Device
 
 log = logging.getLogger(__name__)
@@ -611,14 +612,19 @@ class CanopenNode(Device):
         self._boot(t_s)
 
     def advance(self, t_device_s: float) -> None:
-        """Act on received NMT/SDO frames at `t_device_s`, then send every frame due up to it."""
+        """Act on each received NMT/SDO frame at the device time it came in (`can_wire.arrival_s`:
+        on firmware_sim's own wire, when its slcan line reached the adapter; on another bus, now),
+        then send every frame due up to `t_device_s`."""
         if self._closed:
             return
+        t_prev = self._t_now_s
         if self.state is None:
             self._power_on(t_device_s)
-        self._t_now_s = float(t_device_s)
+            t_prev = float(t_device_s)
         while (msg := self.bus.recv(timeout=0)) is not None:
-            self._on_frame(msg, t_device_s)
+            t_prev = self._t_now_s = arrival_s(self.bus, msg, t_prev, t_device_s)
+            self._on_frame(msg, t_prev)
+        self._t_now_s = float(t_device_s)
         self._emit_until(t_device_s)
 
     def close(self) -> None:

@@ -113,6 +113,9 @@ class SlcanAdapter(Device):
 
     name = "can"
 
+    _t_in_s = 0.0
+    """Device time the client's bytes being handled arrived (on_input); its frames carry it."""
+
     def __init__(
         self,
         internal_bus: can.BusABC,
@@ -150,6 +153,7 @@ class SlcanAdapter(Device):
         if self._closed:
             return
         self._rx.extend(data)
+        self._t_in_s = t_device_s  # stamped on the frames of these lines (can_wire.arrival_s)
         reply = self._handle_lines()
         if reply:
             self.port.write(reply)
@@ -240,6 +244,7 @@ class SlcanAdapter(Device):
         if self._wrong_bitrate:  # the frame never gets an ACK on a bus at another rate
             self.stats.wrong_bitrate += 1
         else:
+            msg.timestamp = self._t_in_s
             self.bus.send(msg)
             self.stats.from_client += 1
         return b"Z\r" if msg.is_extended_id else b"z\r"
