@@ -47,7 +47,7 @@ def arrival_s(bus: can.BusABC, msg: can.Message, earliest_s: float, now_s: float
     frame's time and the tick's): on a :func:`wire` its `timestamp`, which the slcan adapter set to
     the device time the frame's line arrived (SlcanAdapter.on_input), so that a node acts on a
     command when it came in, as a real one does, not at the tick that hands it on (up to 0.1 device
-    s later at 120×: an NMT stop then took effect after a move command sent after it). On any
+    s later at 120×, so that an NMT stop could take effect after a move command sent after it). On any
     other bus (virtual, socketcan: wall-clock stamps) `now_s`."""
     if isinstance(bus, WireEnd):
         return min(max(float(msg.timestamp), earliest_s), now_s)
