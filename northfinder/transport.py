@@ -78,10 +78,12 @@ def _explain_open_error(device: str, url: str, exc: Exception) -> DeviceError:
     return DeviceError(device, url, f"cannot open {url} ({text}) — check the port and the bench config")
 
 
-MIN_WRITE_TIMEOUT_S = 1.0
+MIN_WRITE_TIMEOUT_S = 5.0
 """A write waits at least this long (host) for the line to take it: a streaming port reads with a
 short timeout (the IMU's 0.05 s), but a command written to it must not fail because a loaded host
-scheduled the other end late (seen as "Write timeout" on the IMU's pty under load)."""
+scheduled the other end late (seen as "Write timeout" on the IMU's pty under load: with 0.05 s, and
+once with 1 s — a find's first `=CONFIG,1` in CI, 4 workers beside the UML guest on 2 cores). A
+port that takes nothing for 5 s is still named at once after that."""
 
 
 def open_serial(url: str, *, device: str, baudrate: int, timeout_s: float, **kwargs) -> serial.SerialBase:

@@ -144,7 +144,7 @@ def test_find_time_scale_auto_paces_by_its_own_events_and_replays(tmp_path):
 def test_heap_frozen_freezes_what_is_there_and_unfreezes_after_a_failure_too(monkeypatch):
     """What lives before the body is out of the collector's reach in it (a full collection would
     stop the run's threads); afterwards everything is collectable again, however the body ended.
-    It does not collect first: by then the devices stream (collect_before_streaming does)."""
+    It does not collect first: by then the devices stream (prepare_to_stream does)."""
     collections: list[int] = []
     collect = gc.collect
     monkeypatch.setattr(gc, "collect", lambda *a: collections.append(1) or collect(*a))

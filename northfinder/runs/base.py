@@ -96,11 +96,16 @@ def guard(device: str, port: str, factory: Callable[[], Any]) -> Iterator[Any]:
         obj.__exit__(*sys.exc_info())
 
 
-def collect_before_streaming() -> None:
-    """A full collection before the devices open, so :func:`heap_frozen` freezes little garbage: at
-    a find's start it took 64 ms (47 k objects; 165 ms with the report's matplotlib), 8–20 device s
-    at 120× of an IMU stream the reader then had to catch up — and the tilt sensor's start, noted
-    against the newest IMU index meanwhile, placed its dwell that much late."""
+def prepare_to_stream(*devices: tuple[str, Any]) -> None:
+    """What would stall the interpreter once a device streams, done before the first one opens:
+    every (role, bench section)'s model module imported, and the heap collected (so that
+    :func:`heap_frozen` freezes little garbage). Either, with the devices streaming, held it for tens
+    of ms — at a find's start the collection 64 ms (47 k objects; 165 ms with the report's
+    matplotlib), the CAN accelerometer's modules and a GNSS receiver's (pynmeagps) as much — which a
+    time-scaled simulator's stream multiplies: at 120× the IMU reader fell 8–20 device s behind, and
+    the tilt sensor's start, noted against its newest index, placed that sensor's dwell that late."""
+    for role, section in devices:
+        registry.spec(role, registry.model_of(section, role))
     gc.collect()
 
 
@@ -114,7 +119,7 @@ def heap_frozen() -> Iterator[None]:
     before the body (gc.freeze: later collections skip it; they walk only what the body makes, a few
     thousand objects), and unfrozen after, so garbage cycles among the frozen objects are collected
     again. Not collected here: the devices stream by now, and a collection is that same stall
-    (:func:`collect_before_streaming` does it before they open). Nesting is not supported: the
+    (:func:`prepare_to_stream` does it before they open). Nesting is not supported: the
     inner exit unfreezes."""
     gc.freeze()
     try:

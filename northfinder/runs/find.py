@@ -39,11 +39,11 @@ from northfinder.runkinds import Replayed
 from northfinder.runs.base import (
     ProgressView,
     RunContext,
-    collect_before_streaming,
     default_out,
     guard,
     heap_frozen,
     now_utc,
+    prepare_to_stream,
 )
 from northfinder.runs.base import discard_unstarted as base_discard_unstarted
 from northfinder.runs.find_motion_feed import (
@@ -253,9 +253,7 @@ def open_bench(
     adapter that is a pty and needs no 2 s reset wait); `[accelerometer] bus_options` win.
     """
     a, t = cfg.accelerometer, cfg.turntable
-    for role, section in (("turntable", t), ("imu", cfg.imu), ("accelerometer", a)):
-        registry.spec(role, registry.model_of(section, role))  # imported now, not while the IMU streams
-    collect_before_streaming()
+    prepare_to_stream(("turntable", t), ("imu", cfg.imu), ("accelerometer", a))
     with contextlib.ExitStack() as stack:
         tt = stack.enter_context(guard("turntable", t.port, lambda: registry.open_device(
             "turntable", t, rundir.transcript_path if rundir else None)))

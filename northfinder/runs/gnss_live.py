@@ -220,6 +220,7 @@ def acquire(
     stop = StopFlag()
     blocks: list[Any] = []
     fixes: list[Any] = []
+    base.prepare_to_stream(("imu", imu), ("gnss", gnss))
     with stop.installed(), contextlib.ExitStack() as stack:
         device = stack.enter_context(_open_imu(rd, imu))
         if configure_imu:
