@@ -189,3 +189,25 @@ def test_the_find_command_imports_its_live_view_with_the_command():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=subprocess_env(),
                          timeout=60, check=True)
     assert out.stdout.strip() == "True"
+
+
+def test_align_gnss_imports_both_models_before_it_opens_the_imu(tmp_path, monkeypatch):
+    """The receiver's model (pynmeagps) was imported once the IMU streamed: the same start-up stall,
+    here in the host stamps the IMU–GNSS coarse offset comes from (runs.base.prepare_to_stream)."""
+    from northfinder.config import GnssConfig, ImuConfig
+    from northfinder.devices import registry
+    from northfinder.rundir import RunDir
+    from northfinder.runs import gnss_live
+
+    seen: list[set[str]] = []
+
+    def first_open(role, *args, **kwargs):
+        seen.append(set(registry._loaded))
+        raise RuntimeError("stop at the first open")
+
+    monkeypatch.setattr(registry, "_loaded", {})
+    monkeypatch.setattr(registry, "open_device", first_open)
+    with pytest.raises(RuntimeError, match="first open"):
+        gnss_live.acquire(RunDir(tmp_path / "run"), imu=ImuConfig(port="loop://"),
+                          gnss=GnssConfig(port="loop://"), duration_s=1.0, filter_settings={})
+    assert {key.split("/")[0] for key in seen[0]} == {"imu", "gnss"}
