@@ -470,31 +470,38 @@ def test_find_follows_a_swapped_mapping_and_the_nodes_own_rate(tmp_path):
     """The simulator's node maps z, x | y, status, counter, temperature at 0.1 µg and runs at
     25 Hz; the bench config names only the user's EDS (rate_hz 0: keep the node's rate). The
     heading is within 3σ of the noise limit (CONVENTIONS.md), the tilt from the accelerometer
-    within its own noise/bias-instability/misalignment bound, and every dwell has 25 Hz samples."""
-    import uuid
+    within its own noise/bias-instability/misalignment bound, and every dwell has 25 Hz samples.
+    firmware-sim runs as its own process (over slcan): in this one it shared the interpreter with
+    the find, and on a loaded CI host the IMU's pty once took no command for 1 s, once lost samples."""
+    from test_e2e_find import (
+        DWELL_S,
+        FAST_STAGE_TOML,
+        POSITIONS,
+        TIME_SCALE,
+        TRUTHS,
+        _check_replay,
+        _noise_limit_deg,
+    )
 
-    from test_e2e_find import DWELL_S, POSITIONS, TIME_SCALE, TRUTHS, _check_replay, _noise_limit_deg
-
-    from firmware_sim.config import SimConfig
     from firmware_sim.physics.sensors import ACCEL_PRESETS
-    from firmware_sim.simulator import Simulator
     from northfinder.rundir import RunDir
     from northfinder.runs.find import measure
-    from northfinder.simulate import SimSettings, bench_config
+    from northfinder.simulate import SimSettings, SimulatorProcess, bench_config
 
     truth = TRUTHS[0]
     rate_hz = 25.0
-    sim_cfg = SimConfig(**truth, time_scale=TIME_SCALE, stage_speed_dps=90.0, stage_accel_dps2=360.0,
-                        stage_ringing_decay_s=0.1, accel_rate_hz=rate_hz, accel_mapping="swapped",
-                        can_interface="virtual", can_channel=f"sdo-e2e-{uuid.uuid4().hex[:8]}")
-    settings = SimSettings(**{k: truth[k] for k in ("heading_deg", "pitch_deg", "roll_deg", "latitude_deg")})
+    sim_toml = tmp_path / "sim.toml"
+    sim_toml.write_text(FAST_STAGE_TOML + f'accel_rate_hz = {rate_hz:g}\naccel_mapping = "swapped"\n')
+    settings = SimSettings(**truth, time_scale=TIME_SCALE, config=str(sim_toml))
     run_dir = tmp_path / "run"
-    with Simulator(sim_cfg) as endpoints:
+    with SimulatorProcess(settings) as endpoints:
+        assert endpoints["can"]["interface"] == "slcan"
         cfg = bench_config(endpoints, truth["latitude_deg"])
         cfg.accelerometer.eds = str(SWAPPED_EDS)
         cfg.run.positions, cfg.run.dwell_s = POSITIONS, DWELL_S
         assert cfg.validate().accelerometer.rate_hz == 0.0  # nothing about the rate on our side
-        result = measure(cfg, RunDir(run_dir), settings=settings, report=False,)
+        result = measure(cfg, RunDir(run_dir), settings=settings, report=False,
+                         can_kwargs={"sleep_after_open": 0.05})
     assert result["complete"]
     n = int(DWELL_S * rate_hz)  # the node's rate; an early move leaves ≥ 90 % (accel_min_fraction)
     assert all(0.9 * n <= p["accel_samples"] + p["accel_lost_samples"] <= n for p in result["positions"])
