@@ -83,12 +83,11 @@ class ArrivalStamper(Generic[Owner]):
         """Read and stamp what has arrived, from the calling thread, without waiting: the loop calls
         this after its devices' work each tick, so input that came meanwhile is stamped then even
         when the thread waits for a CPU (a busy 2-core host can keep it off one for milliseconds)."""
-        by_fd = self._by_fd
-        fds = [fd for fd, (port, _owner) in by_fd.items() if port.connected]
-        if not fds:
+        by_fd = self._by_fd  # the ports the loop's watch() gave this tick: a client has each open
+        if not by_fd:
             return
         try:
-            readable = select.select(fds, [], [], 0)[0]
+            readable = select.select(list(by_fd), [], [], 0)[0]
         except OSError:  # a port closed under us: the thread and the loop's next set see to it
             return
         if readable and self._stamp(readable, by_fd, set()):

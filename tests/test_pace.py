@@ -157,29 +157,40 @@ def test_heap_frozen_freezes_what_is_there_and_unfreezes_after_a_failure_too(mon
     assert not collections
 
 
-def test_find_imports_every_device_model_and_collects_before_it_opens_the_first_device(monkeypatch):
-    """A module imported, or a full collection, while the IMU streams holds the interpreter for tens
-    of ms (the CAN accelerometer's modules: canopen, cantools; a collection: 64 ms) and the IMU
-    reader falls behind by that times the time scale; so open_bench does both first."""
-    from northfinder.config import BenchConfig
+def _before_the_first_open(monkeypatch, start) -> tuple[set[str], int]:
+    """Run `start()` until it opens its first device (registry.open_device, stopped there): the roles
+    whose model module was loaded by then, and how many full collections ran before it."""
     from northfinder.devices import registry
-    from northfinder.runs.find import open_bench
 
     seen: list[set[str]] = []
     collections: list[int] = []
 
     def first_open(role, *args, **kwargs):
-        seen.append(set(registry._loaded))
+        seen.append({key.split("/")[0] for key in registry._loaded})
         raise RuntimeError("stop at the first open")
 
     collect = gc.collect
     monkeypatch.setattr(gc, "collect", lambda *a: collections.append(1) or collect(*a))
     monkeypatch.setattr(registry, "_loaded", {})
     monkeypatch.setattr(registry, "open_device", first_open)
-    cfg = BenchConfig(source="test")
-    with pytest.raises(RuntimeError, match="first open"), open_bench(cfg, None):
-        pass
-    assert {key.split("/")[0] for key in seen[0]} == {"turntable", "imu", "accelerometer"}
+    with pytest.raises(RuntimeError, match="first open"):
+        start()
+    return seen[0], len(collections)
+
+
+def test_find_imports_every_device_model_and_collects_before_it_opens_the_first_device(monkeypatch):
+    """A module imported, or a full collection, while the IMU streams holds the interpreter for tens
+    of ms (the CAN accelerometer's modules: canopen, cantools; a collection: 64 ms) and the IMU
+    reader falls behind by that times the time scale; so open_bench does both first."""
+    from northfinder.config import BenchConfig
+    from northfinder.runs.find import open_bench
+
+    def start():
+        with open_bench(BenchConfig(source="test"), None):
+            pass
+
+    roles, collections = _before_the_first_open(monkeypatch, start)
+    assert roles == {"turntable", "imu", "accelerometer"}
     assert collections, "the heap is collected before the devices stream (heap_frozen does not)"
 
 
@@ -191,23 +202,15 @@ def test_the_find_command_imports_its_live_view_with_the_command():
     assert out.stdout.strip() == "True"
 
 
-def test_align_gnss_imports_both_models_before_it_opens_the_imu(tmp_path, monkeypatch):
+def test_align_gnss_imports_both_models_and_collects_before_it_opens_the_imu(tmp_path, monkeypatch):
     """The receiver's model (pynmeagps) was imported once the IMU streamed: the same start-up stall,
     here in the host stamps the IMU–GNSS coarse offset comes from (runs.base.prepare_to_stream)."""
     from northfinder.config import GnssConfig, ImuConfig
-    from northfinder.devices import registry
     from northfinder.rundir import RunDir
     from northfinder.runs import gnss_live
 
-    seen: list[set[str]] = []
-
-    def first_open(role, *args, **kwargs):
-        seen.append(set(registry._loaded))
-        raise RuntimeError("stop at the first open")
-
-    monkeypatch.setattr(registry, "_loaded", {})
-    monkeypatch.setattr(registry, "open_device", first_open)
-    with pytest.raises(RuntimeError, match="first open"):
-        gnss_live.acquire(RunDir(tmp_path / "run"), imu=ImuConfig(port="loop://"),
-                          gnss=GnssConfig(port="loop://"), duration_s=1.0, filter_settings={})
-    assert {key.split("/")[0] for key in seen[0]} == {"imu", "gnss"}
+    roles, collections = _before_the_first_open(monkeypatch, lambda: gnss_live.acquire(
+        RunDir(tmp_path / "run"), imu=ImuConfig(port="loop://"), gnss=GnssConfig(port="loop://"),
+        duration_s=1.0, filter_settings={}))
+    assert roles == {"imu", "gnss"}
+    assert collections

@@ -113,9 +113,6 @@ class SlcanAdapter(Device):
 
     name = "can"
 
-    _t_in_s = 0.0
-    """Device time the client's bytes being handled arrived (on_input); its frames carry it."""
-
     def __init__(
         self,
         internal_bus: can.BusABC,
@@ -153,8 +150,7 @@ class SlcanAdapter(Device):
         if self._closed:
             return
         self._rx.extend(data)
-        self._t_in_s = t_device_s  # stamped on the frames of these lines (can_wire.arrival_s)
-        reply = self._handle_lines()
+        reply = self._handle_lines(t_device_s)
         if reply:
             self.port.write(reply)
 
@@ -195,7 +191,7 @@ class SlcanAdapter(Device):
         self.port.close()
 
     # -- protocol ------------------------------------------------------------------------------
-    def _handle_lines(self) -> bytes:
+    def _handle_lines(self, t_device_s: float) -> bytes:
         replies = bytearray()
         while True:
             end = self._rx.find(b"\r")
@@ -203,18 +199,19 @@ class SlcanAdapter(Device):
                 break
             line = bytes(self._rx[:end]).replace(b"\n", b"")
             del self._rx[: end + 1]
-            replies += self.command(line)
+            replies += self.command(line, t_device_s)
         if len(self._rx) > 4096:  # garbage without a CR: a real adapter's line buffer overflows
             self._rx.clear()
             replies += self._error()
         return bytes(replies)
 
-    def command(self, line: bytes) -> bytes:
-        """Act on one line from the client (without its `\\r`); return the reply bytes."""
+    def command(self, line: bytes, t_device_s: float = 0.0) -> bytes:
+        """Act on one line from the client (without its `\\r`) that arrived at `t_device_s`; return
+        the reply bytes. A frame goes onto the bus stamped with that time (can_wire.arrival_s)."""
         if not line:
             return b""
         if line[:1] in (b"t", b"T", b"r", b"R"):
-            return self._client_frame(line)
+            return self._client_frame(line, t_device_s)
         text = line.decode("ascii", errors="replace")
         if text in BITRATES:
             if self.is_open:  # Lawicel: bitrate only on a closed channel
@@ -234,7 +231,7 @@ class SlcanAdapter(Device):
             return SERIAL_REPLY
         return self._error()
 
-    def _client_frame(self, line: bytes) -> bytes:
+    def _client_frame(self, line: bytes, t_device_s: float) -> bytes:
         if not self.is_open or self.listen_only:
             return self._error()
         try:
@@ -244,7 +241,7 @@ class SlcanAdapter(Device):
         if self._wrong_bitrate:  # the frame never gets an ACK on a bus at another rate
             self.stats.wrong_bitrate += 1
         else:
-            msg.timestamp = self._t_in_s
+            msg.timestamp = t_device_s
             self.bus.send(msg)
             self.stats.from_client += 1
         return b"Z\r" if msg.is_extended_id else b"z\r"

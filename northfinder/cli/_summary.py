@@ -202,6 +202,7 @@ NARROW_COLUMNS = 120
 
 class ProgressView:
     """rich live progress: position k of n, dwell in device time, live gyro mean and σ."""
+
     def __init__(self, n: int, dwell_s: float, enabled: bool = True):
         self.console = Console(stderr=True)
         self.enabled = enabled
