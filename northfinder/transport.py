@@ -360,24 +360,27 @@ release reads in chunks."""
 
 class ReadPacer:
     """A short pause after each read while a stream runs slowly, so that a real-time stream is read
-    in a hundred calls a second, not in one per simulator tick or USB packet.
+    in forty calls a second, not in one per simulator tick or USB packet.
 
     Why: at real time a read brings a few frames, and the wake-up costs more than the frames do
-    (measured: the KVH reader 0.9–1.4 s of CPU in 32 s, 0.65–0.68 s with a 10 ms pause). The CAN
-    reader did not gain from it (its cost is per frame, in python-can's Notifier and canopen), so only
-    the IMU drivers pace their reads. The pause adds `pause_s` of latency, nothing at the
-    rates where latency counts: the rate is measured over each `window_s` of wall time, and the
-    pause stops as soon as it is at or above `below_bytes_s` (a time-scaled simulator). Nor is there a
-    pause after a read of `small_bytes` or more: bytes were waiting, the reader is behind. (The rate is
-    what the reader took, so on a starved host paused reads could measure "slow" again and again
-    while the backlog grew until the simulator dropped bytes.) The clock and the sleep are
-    parameters for tests."""
+    (measured, KVH at 1 kHz: the reader 2.4 % of a core with a 10 ms pause, 1.0 % with 25 ms; 3–4 %
+    without). The CAN reader did not gain from it (its cost is per frame, in python-can's Notifier
+    and canopen), so only the IMU drivers pace their reads. The pause adds `pause_s` of latency
+    (25 ms: a fortieth of the sequencer's 1 s dwell grid), nothing at the rates where latency counts:
+    the rate is measured over each `window_s` of wall time, and the pause stops as soon as it is at
+    or above `below_bytes_s` (a time-scaled simulator). Nor is there a pause after a read of
+    `small_bytes` or more (default: two pauses' worth of bytes at `below_bytes_s`): bytes were
+    waiting, the reader is behind. (The rate is what the reader took, so on a starved host paused
+    reads could measure "slow" again and again while the backlog grew until the simulator dropped
+    bytes.) The clock and the sleep are parameters for tests."""
 
-    def __init__(self, below_bytes_s: float, pause_s: float = 0.01, window_s: float = 0.25,
-                 small_bytes: int = 1024, clock: Callable[[], float] = time.monotonic,
+    def __init__(self, below_bytes_s: float, pause_s: float = 0.025, window_s: float = 0.25,
+                 small_bytes: int | None = None, clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep):
         self.below_bytes_s, self.pause_s = float(below_bytes_s), float(pause_s)
-        self.window_s, self.small_bytes = float(window_s), int(small_bytes)
+        self.window_s = float(window_s)
+        two_pauses = int(2 * self.below_bytes_s * self.pause_s)
+        self.small_bytes = two_pauses if small_bytes is None else int(small_bytes)
         self._clock, self._sleep = clock, sleep
         self._t0, self._bytes = clock(), 0
         self.slow = False

@@ -150,6 +150,8 @@ def test_read_pacer_pauses_only_while_the_stream_is_slow():
     assert slept == [0.01, 0.01]
     pacer.after_read(4095)  # bytes were waiting: behind, however slow the last window was
     assert slept == [0.01, 0.01]
+    pacer.after_read(20)  # two pauses' worth at 1 kB/s (the default small_bytes): behind too
+    assert pacer.small_bytes == 20 and slept == [0.01, 0.01]
     now[0] = 0.6
     pacer.after_read(10_000)  # 14,105 B in 0.3 s: fast, no pause
     assert not pacer.slow and slept == [0.01, 0.01]
