@@ -473,6 +473,7 @@ def test_find_follows_a_swapped_mapping_and_the_nodes_own_rate(tmp_path):
     within its own noise/bias-instability/misalignment bound, and every dwell has 25 Hz samples.
     firmware-sim runs as its own process (over slcan): in this one it shared the interpreter with
     the find, and on a loaded CI host the IMU's pty once took no command for 1 s, once lost samples."""
+    from helpers import LOADED_HOST_SIM_TOML
     from test_e2e_find import (
         DWELL_S,
         FAST_STAGE_TOML,
@@ -491,7 +492,8 @@ def test_find_follows_a_swapped_mapping_and_the_nodes_own_rate(tmp_path):
     truth = TRUTHS[0]
     rate_hz = 25.0
     sim_toml = tmp_path / "sim.toml"
-    sim_toml.write_text(FAST_STAGE_TOML + f'accel_rate_hz = {rate_hz:g}\naccel_mapping = "swapped"\n')
+    sim_toml.write_text(LOADED_HOST_SIM_TOML + FAST_STAGE_TOML
+                        + f'accel_rate_hz = {rate_hz:g}\naccel_mapping = "swapped"\n')
     settings = SimSettings(**truth, time_scale=TIME_SCALE, config=str(sim_toml))
     run_dir = tmp_path / "run"
     with SimulatorProcess(settings) as endpoints:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import LOADED_HOST_SIM_TOML
 
 from northfinder.estimators.limits import noise_limit_heading_std_deg
 from northfinder.rotations import tilt_and_azimuth
@@ -71,7 +72,7 @@ def _find(tmp_path: Path, sim_toml: str, faults: tuple[str, ...] = (), seed: int
     from northfinder.runs.find import measure
 
     conf = tmp_path / "sim.toml"
-    conf.write_text(sim_toml + f"accel_rate_hz = {ACCEL_RATE_HZ}\n")
+    conf.write_text(LOADED_HOST_SIM_TOML + sim_toml + f"accel_rate_hz = {ACCEL_RATE_HZ}\n")
     settings = SimSettings(**{k: TRUTH[k] for k in ("heading_deg", "pitch_deg", "roll_deg", "latitude_deg")},
                            grade=TRUTH["grade"], seed=seed, time_scale=time_scale, faults=faults,
                            config=str(conf))
@@ -183,7 +184,9 @@ def test_a_slow_stage_settles_before_every_dwell_without_a_remeasure(tmp_path):
                                speed_deg_s=5.0)
     _check(run_dir, result, gyro_axes=2)
     margins = _rest_margins_s(run_dir, truth_log)
-    print("first dwell sample after rest by", [round(m, 3) for m in margins], "s")
+    imu = result["faults"]["imu"]  # a loss of ≥ 128 samples would leave the margins' index map wrong
+    print("first dwell sample after rest by", [round(m, 3) for m in margins], "s; IMU lost",
+          imu["lost_samples"], "in", imu["sequence_gaps"], "gaps")
     assert min(margins) > 0.0
 
 
