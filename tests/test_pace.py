@@ -141,13 +141,19 @@ def test_find_time_scale_auto_paces_by_its_own_events_and_replays(tmp_path):
     assert "identical" in replayed.stdout
 
 
+def _counting_collections(monkeypatch) -> list[int]:
+    """gc.collect still collects, and each call is appended to the list returned."""
+    collections: list[int] = []
+    collect = gc.collect
+    monkeypatch.setattr(gc, "collect", lambda *a: collections.append(1) or collect(*a))
+    return collections
+
+
 def test_heap_frozen_freezes_what_is_there_and_unfreezes_after_a_failure_too(monkeypatch):
     """What lives before the body is out of the collector's reach in it (a full collection would
     stop the run's threads); afterwards everything is collectable again, however the body ended.
     It does not collect first: by then the devices stream (prepare_to_stream does)."""
-    collections: list[int] = []
-    collect = gc.collect
-    monkeypatch.setattr(gc, "collect", lambda *a: collections.append(1) or collect(*a))
+    collections = _counting_collections(monkeypatch)
     gc.unfreeze()
     held = [[k] for k in range(5000)]  # containers: tracked by the collector
     with pytest.raises(RuntimeError), heap_frozen():
@@ -163,14 +169,12 @@ def _before_the_first_open(monkeypatch, start) -> tuple[set[str], int]:
     from northfinder.devices import registry
 
     seen: list[set[str]] = []
-    collections: list[int] = []
 
     def first_open(role, *args, **kwargs):
         seen.append({key.split("/")[0] for key in registry._loaded})
         raise RuntimeError("stop at the first open")
 
-    collect = gc.collect
-    monkeypatch.setattr(gc, "collect", lambda *a: collections.append(1) or collect(*a))
+    collections = _counting_collections(monkeypatch)
     monkeypatch.setattr(registry, "_loaded", {})
     monkeypatch.setattr(registry, "open_device", first_open)
     with pytest.raises(RuntimeError, match="first open"):

@@ -617,13 +617,12 @@ class CanopenNode(Device):
         then send every frame due up to `t_device_s`."""
         if self._closed:
             return
-        t_prev = self._t_now_s
         if self.state is None:
             self._power_on(t_device_s)
-            t_prev = float(t_device_s)
-        while (msg := self.bus.recv(timeout=0)) is not None:
-            t_prev = self._t_now_s = arrival_s(self.bus, msg, t_prev, t_device_s)
-            self._on_frame(msg, t_prev)
+            self._t_now_s = float(t_device_s)
+        while (msg := self.bus.recv(timeout=0)) is not None:  # _t_now_s: the last frame's time
+            self._t_now_s = arrival_s(self.bus, msg, self._t_now_s, t_device_s)
+            self._on_frame(msg, self._t_now_s)
         self._t_now_s = float(t_device_s)
         self._emit_until(t_device_s)
 
